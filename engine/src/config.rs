@@ -1,0 +1,241 @@
+//! The model configuration of SPEC section 7, as a plain `Copy` value usable in `const`
+//! context, so firmware can plan its arena at compile time.
+
+use crate::error::ConfigError;
+
+/// Which normalization the ResNet-18 trunk was trained with.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BackboneNorm {
+    /// GroupNorm(C/16 groups): Diffusion Policy's choice; stays a runtime operation.
+    Group,
+    /// Eval-mode BatchNorm: folded into the preceding convolution by the weights tool.
+    Batch,
+}
+
+/// Number of U-Net levels. The SPEC's ConditionalUnet1D has three (`down_dims` has three
+/// entries), so the horizon must be divisible by 4.
+pub const UNET_LEVELS: usize = 3;
+
+/// Number of feature-pyramid levels (C1..C5 of ResNet-18).
+pub const PYRAMID_LEVELS: usize = 5;
+
+/// Every hyper-parameter that shapes a model. Field names follow the TOML of SPEC section 7.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ModelConfig {
+    pub image_height: u32,
+    pub image_width: u32,
+    pub imagenet_norm: bool,
+    pub backbone_norm: BackboneNorm,
+    /// Channels of the first ResNet stage (64 in torchvision's resnet18; the later stages
+    /// have 2x, 4x, 8x). A project extension of SPEC section 7 so the tiny test model stays
+    /// small; real checkpoints always have 64.
+    pub backbone_width: u32,
+    /// `d`: channels of each projected feature map.
+    pub feature_dim: u32,
+    /// `To`: frames of observation history.
+    pub n_obs_steps: u32,
+    pub horizon: u32,
+    pub n_action_steps: u32,
+    /// `s`: anchors reconstructed from the action chunk (the start point makes s + 1).
+    pub reconstruction_horizon: u32,
+    pub state_dim: u32,
+    pub action_dim: u32,
+    pub state_pos_index: [u32; 3],
+    pub action_pos_index: [u32; 3],
+    pub pos_scale: f32,
+    pub down_dims: [u32; UNET_LEVELS],
+    pub diffusion_step_embed_dim: u32,
+    pub kernel_size: u32,
+    pub n_groups: u32,
+    pub num_train_timesteps: u32,
+    pub num_inference_steps: u32,
+    pub clip_sample: bool,
+}
+
+impl ModelConfig {
+    /// The paper's real-robot configuration (SPEC section 7).
+    pub const PANDA: ModelConfig = ModelConfig {
+        image_height: 240,
+        image_width: 320,
+        imagenet_norm: false,
+        backbone_norm: BackboneNorm::Group,
+        backbone_width: 64,
+        feature_dim: 64,
+        n_obs_steps: 2,
+        horizon: 16,
+        n_action_steps: 8,
+        reconstruction_horizon: 8,
+        state_dim: 8,
+        action_dim: 10,
+        state_pos_index: [0, 1, 2],
+        action_pos_index: [0, 1, 2],
+        pos_scale: 1.0,
+        down_dims: [128, 256, 384],
+        diffusion_step_embed_dim: 128,
+        kernel_size: 5,
+        n_groups: 8,
+        num_train_timesteps: 100,
+        num_inference_steps: 10,
+        clip_sample: true,
+    };
+
+    /// The simulated benchmark configuration (SPEC section 7).
+    pub const METAWORLD: ModelConfig = ModelConfig {
+        image_height: 128,
+        image_width: 128,
+        state_dim: 9,
+        action_dim: 4,
+        pos_scale: 0.01,
+        ..ModelConfig::PANDA
+    };
+
+    /// A model small enough that a debug-build test runs it instantly. Covers BatchNorm and
+    /// ImageNet normalization, which the two named configurations do not.
+    pub const TINY: ModelConfig = ModelConfig {
+        image_height: 32,
+        image_width: 48,
+        imagenet_norm: true,
+        backbone_norm: BackboneNorm::Batch,
+        backbone_width: 8,
+        feature_dim: 8,
+        n_obs_steps: 2,
+        horizon: 8,
+        n_action_steps: 4,
+        reconstruction_horizon: 4,
+        state_dim: 5,
+        action_dim: 4,
+        state_pos_index: [0, 1, 2],
+        action_pos_index: [0, 1, 2],
+        pos_scale: 0.1,
+        down_dims: [16, 32, 48],
+        diffusion_step_embed_dim: 16,
+        kernel_size: 3,
+        n_groups: 4,
+        num_train_timesteps: 100,
+        num_inference_steps: 10,
+        clip_sample: true,
+    };
+
+    /// Checks every rule the engine and the weights tool rely on. `const` so a firmware
+    /// build can reject a bad configuration at compile time.
+    pub const fn validate(&self) -> Result<(), ConfigError> {
+        if self.image_height == 0 || self.image_width == 0 {
+            return Err(ConfigError::ZeroImageSize);
+        }
+        if self.image_height > 4096 || self.image_width > 4096 {
+            return Err(ConfigError::ImageTooLarge);
+        }
+        // GroupNorm needs C/16 groups of at least one channel; BatchNorm has no groups.
+        let width_step = match self.backbone_norm {
+            BackboneNorm::Group => 16,
+            BackboneNorm::Batch => 8,
+        };
+        if self.backbone_width == 0
+            || self.backbone_width % width_step != 0
+            || self.backbone_width > 256
+        {
+            return Err(ConfigError::BackboneWidth);
+        }
+        if self.feature_dim == 0 || self.feature_dim > 1024 {
+            return Err(ConfigError::FeatureDim);
+        }
+        if self.n_obs_steps == 0 || self.n_obs_steps > MAX_OBS_STEPS as u32 {
+            return Err(ConfigError::ObsSteps);
+        }
+        if self.horizon == 0 || self.horizon % 4 != 0 || self.horizon > 256 {
+            return Err(ConfigError::HorizonNotMultipleOfFour);
+        }
+        if self.n_action_steps == 0 || self.n_obs_steps - 1 + self.n_action_steps > self.horizon
+        {
+            return Err(ConfigError::ActionStepsBeyondHorizon);
+        }
+        if self.reconstruction_horizon == 0
+            || self.reconstruction_horizon > MAX_ANCHOR_STEPS as u32
+            || self.n_obs_steps - 1 + self.reconstruction_horizon > self.horizon
+        {
+            return Err(ConfigError::ReconstructionHorizon);
+        }
+        if self.state_dim == 0 || self.state_dim > 256 || self.action_dim == 0 || self.action_dim > 256
+        {
+            return Err(ConfigError::StateOrActionDim);
+        }
+        let mut i = 0;
+        while i < 3 {
+            if self.state_pos_index[i] >= self.state_dim {
+                return Err(ConfigError::StatePosIndex);
+            }
+            if self.action_pos_index[i] >= self.action_dim {
+                return Err(ConfigError::ActionPosIndex);
+            }
+            i += 1;
+        }
+        if !self.pos_scale.is_finite() {
+            return Err(ConfigError::PosScale);
+        }
+        if self.n_groups == 0 {
+            return Err(ConfigError::Groups);
+        }
+        let mut level = 0;
+        while level < UNET_LEVELS {
+            let dim = self.down_dims[level];
+            if dim == 0 || dim > 4096 || dim % self.n_groups != 0 {
+                return Err(ConfigError::DownDims);
+            }
+            level += 1;
+        }
+        if self.diffusion_step_embed_dim < 4
+            || self.diffusion_step_embed_dim % 2 != 0
+            || self.diffusion_step_embed_dim > 4096
+        {
+            return Err(ConfigError::StepEmbedDim);
+        }
+        if self.kernel_size == 0 || self.kernel_size % 2 == 0 || self.kernel_size > 15 {
+            return Err(ConfigError::KernelSize);
+        }
+        if self.num_train_timesteps == 0 || self.num_train_timesteps > 10_000 {
+            return Err(ConfigError::TrainTimesteps);
+        }
+        if self.num_inference_steps == 0
+            || self.num_inference_steps > MAX_INFERENCE_STEPS as u32
+            || self.num_inference_steps > self.num_train_timesteps
+        {
+            return Err(ConfigError::InferenceSteps);
+        }
+        Ok(())
+    }
+
+    /// Anchors per denoising step: the current position plus `s` reconstructed ones.
+    pub const fn anchor_count(&self) -> usize {
+        self.reconstruction_horizon as usize + 1
+    }
+
+    /// Length of one frame's pooled context: `5 d`.
+    pub const fn context_dim(&self) -> usize {
+        PYRAMID_LEVELS * self.feature_dim as usize
+    }
+
+    /// Length of the global condition `g`: `To (5 d + state_dim)`.
+    pub const fn global_cond_dim(&self) -> usize {
+        self.n_obs_steps as usize * (self.context_dim() + self.state_dim as usize)
+    }
+
+    /// Length of the U-Net condition `[temb, g]`.
+    pub const fn cond_dim(&self) -> usize {
+        self.diffusion_step_embed_dim as usize + self.global_cond_dim()
+    }
+
+    /// Channels of ResNet stage `stage` (0 = stem and layer1, 3 = layer4).
+    pub const fn stage_channels(&self, stage: usize) -> usize {
+        (self.backbone_width as usize) << stage
+    }
+
+    /// Groups of a trunk GroupNorm over `channels` (SPEC section 2: C/16).
+    pub const fn backbone_groups(channels: usize) -> usize {
+        channels / 16
+    }
+}
+
+/// Upper bounds that size fixed arrays inside the engine.
+pub const MAX_OBS_STEPS: usize = 8;
+pub const MAX_ANCHOR_STEPS: usize = 32;
+pub const MAX_INFERENCE_STEPS: usize = 100;

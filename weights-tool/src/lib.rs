@@ -1,0 +1,1 @@
+//! weights-tool library: checkpoint reading, synthetic weights, conversion.
