@@ -43,6 +43,7 @@ pub struct ModelConfig {
     pub state_pos_index: [u32; 3],
     pub action_pos_index: [u32; 3],
     pub pos_scale: f32,
+    /// U-Net widths; each a multiple of `n_groups`, the first also of 8 (the head's groups).
     pub down_dims: [u32; UNET_LEVELS],
     pub diffusion_step_embed_dim: u32,
     pub kernel_size: u32,
@@ -145,8 +146,7 @@ impl ModelConfig {
         if self.horizon == 0 || self.horizon % 4 != 0 || self.horizon > 256 {
             return Err(ConfigError::HorizonNotMultipleOfFour);
         }
-        if self.n_action_steps == 0 || self.n_obs_steps - 1 + self.n_action_steps > self.horizon
-        {
+        if self.n_action_steps == 0 || self.n_obs_steps - 1 + self.n_action_steps > self.horizon {
             return Err(ConfigError::ActionStepsBeyondHorizon);
         }
         if self.reconstruction_horizon == 0
@@ -155,7 +155,10 @@ impl ModelConfig {
         {
             return Err(ConfigError::ReconstructionHorizon);
         }
-        if self.state_dim == 0 || self.state_dim > 256 || self.action_dim == 0 || self.action_dim > 256
+        if self.state_dim == 0
+            || self.state_dim > 256
+            || self.action_dim == 0
+            || self.action_dim > 256
         {
             return Err(ConfigError::StateOrActionDim);
         }
@@ -182,6 +185,10 @@ impl ModelConfig {
                 return Err(ConfigError::DownDims);
             }
             level += 1;
+        }
+        // The head's GroupNorm has Diffusion Policy's default 8 groups whatever n_groups is.
+        if self.down_dims[0] % crate::denoiser::FINAL_BLOCK_GROUPS as u32 != 0 {
+            return Err(ConfigError::DownDims);
         }
         if self.diffusion_step_embed_dim < 4
             || self.diffusion_step_embed_dim % 2 != 0
@@ -229,10 +236,59 @@ impl ModelConfig {
         (self.backbone_width as usize) << stage
     }
 
+    /// Channels of pyramid tap C(level + 1): C1 and C2 have the stem width, then x2 per stage.
+    pub const fn pyramid_channels(&self, level: usize) -> usize {
+        if level == 0 {
+            self.stage_channels(0)
+        } else {
+            self.stage_channels(level - 1)
+        }
+    }
+
+    /// `(height, width)` of the stem convolution's output (stride 2).
+    pub const fn stem_size(&self) -> (usize, usize) {
+        (
+            conv_output(self.image_height as usize, 7, 2, 3),
+            conv_output(self.image_width as usize, 7, 2, 3),
+        )
+    }
+
+    /// `(height, width)` of pyramid tap C(level + 1), by PyTorch's convolution arithmetic.
+    pub const fn pyramid_size(&self, level: usize) -> (usize, usize) {
+        let (stem_height, stem_width) = self.stem_size();
+        // C1 is the 3x3 stride-2 max pool of the stem; C2 keeps its size; C3..C5 halve it.
+        let mut height = conv_output(stem_height, 3, 2, 1);
+        let mut width = conv_output(stem_width, 3, 2, 1);
+        let mut stage = 2;
+        while stage <= level {
+            height = conv_output(height, 3, 2, 1);
+            width = conv_output(width, 3, 2, 1);
+            stage += 1;
+        }
+        (height, width)
+    }
+
+    /// Values of one frame's five projected maps together.
+    pub const fn feature_frame_len(&self) -> usize {
+        let mut total = 0;
+        let mut level = 0;
+        while level < PYRAMID_LEVELS {
+            let (height, width) = self.pyramid_size(level);
+            total += height * width;
+            level += 1;
+        }
+        total * self.feature_dim as usize
+    }
+
     /// Groups of a trunk GroupNorm over `channels` (SPEC section 2: C/16).
     pub const fn backbone_groups(channels: usize) -> usize {
         channels / 16
     }
+}
+
+/// Output length of a convolution or pooling window (PyTorch's floor rule).
+pub const fn conv_output(input: usize, kernel: usize, stride: usize, padding: usize) -> usize {
+    (input + 2 * padding - kernel) / stride + 1
 }
 
 /// Upper bounds that size fixed arrays inside the engine.

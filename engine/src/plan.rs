@@ -1,0 +1,203 @@
+//! The memory plan: every buffer of one inference as a slice of a single arena, computed
+//! by `const fn` so firmware can size a `static` at compile time:
+//!
+//! ```
+//! use scdp_engine::{Arena, ArenaPlan, ModelConfig};
+//! const CONFIG: ModelConfig = ModelConfig::METAWORLD;
+//! const PLAN: ArenaPlan = ArenaPlan::new(&CONFIG);
+//! static ARENA: std::sync::Mutex<Arena<{ PLAN.arena_bytes }>> =
+//!     std::sync::Mutex::new(Arena::new());
+//! # assert!(PLAN.arena_bytes > 0);
+//! ```
+//!
+//! Buffers whose lifetimes do not overlap share memory: the feature maps and the small
+//! per-inference state persist; the ResNet trunk's scratch (used while a frame is encoded)
+//! and the U-Net's scratch (used while denoising) are the same bytes, and inside the trunk
+//! four rotating activation buffers serve every residual block. Every buffer starts on a
+//! 64-byte boundary.
+
+use crate::config::{ModelConfig, PYRAMID_LEVELS, UNET_LEVELS};
+use crate::format::ALIGN;
+
+const FLOATS_PER_LINE: usize = ALIGN / 4;
+
+/// `len` f32 values rounded up to whole 64-byte lines.
+pub const fn aligned_len(len: usize) -> usize {
+    len.div_ceil(FLOATS_PER_LINE) * FLOATS_PER_LINE
+}
+
+/// Lengths, in f32 values, of every buffer. The arena is carved in the order of the fields.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ArenaPlan {
+    /// Bytes the arena must have.
+    pub arena_bytes: usize,
+    /// Bytes the same buffers would take with no reuse at all (every activation its own).
+    pub without_reuse_bytes: usize,
+
+    // Persistent between calls.
+    /// `To` frames of the five projected maps, `[H_n, W_n, d]` each, levels back to back.
+    pub features: usize,
+    /// `To` raw state vectors.
+    pub states: usize,
+    /// `[steps, s + 1, 2]` anchor pixels of the last inference (NaN where invalid).
+    pub anchors: usize,
+    /// `[horizon, action_dim]`: the sample being denoised, then the unnormalized result.
+    pub sample: usize,
+    /// `[horizon, action_dim]`: the U-Net's noise prediction.
+    pub eps: usize,
+    /// The global condition `g`, and `Mish(g)` which the FiLM layers read.
+    pub global_cond: usize,
+    pub activated_cond: usize,
+    /// FiLM scale and bias of the residual block being run.
+    pub film: usize,
+
+    /// Shared scratch: the larger of the two phases below.
+    pub scratch: usize,
+    /// Trunk phase: four activation buffers, the first of which also holds the input image;
+    /// the stem's output overlaps the other three (they are not live yet).
+    pub trunk_activation: usize,
+    pub trunk_stem: usize,
+    /// Denoising phase: four work buffers and the two skips the up path reads.
+    pub unet_work: usize,
+    pub unet_skips: [usize; UNET_LEVELS - 1],
+}
+
+impl ArenaPlan {
+    pub const fn new(config: &ModelConfig) -> ArenaPlan {
+        let frames = config.n_obs_steps as usize;
+        let steps = config.num_inference_steps as usize;
+        let horizon = config.horizon as usize;
+        let action_dim = config.action_dim as usize;
+        let sequence = horizon * action_dim;
+
+        let features = aligned_len(frames * config.feature_frame_len());
+        let states = aligned_len(frames * config.state_dim as usize);
+        let anchors = aligned_len(steps * config.anchor_count() * 2);
+        let sample = aligned_len(sequence);
+        let eps = aligned_len(sequence);
+        let global_cond = aligned_len(config.global_cond_dim());
+        let activated_cond = global_cond;
+        let mut widest = 0;
+        let mut level = 0;
+        while level < UNET_LEVELS {
+            if config.down_dims[level] as usize > widest {
+                widest = config.down_dims[level] as usize;
+            }
+            level += 1;
+        }
+        let film = aligned_len(2 * widest);
+        let persistent =
+            features + states + anchors + sample + eps + global_cond + activated_cond + film;
+
+        // Trunk: the image and every stage's activation fit in one activation buffer.
+        let image = config.image_height as usize * config.image_width as usize * 3;
+        let (stem_height, stem_width) = config.stem_size();
+        let stem = stem_height * stem_width * config.stage_channels(0);
+        let mut largest_activation = image;
+        let mut trunk_naive = image + stem;
+        let mut stage = 0;
+        while stage < 4 {
+            let (height, width) = config.pyramid_size(stage + 1);
+            let activation = height * width * config.stage_channels(stage);
+            if activation > largest_activation {
+                largest_activation = activation;
+            }
+            // Without reuse: each block's two convolutions (+ shortcut for the first block
+            // of stages 2-4) and the max pool output have buffers of their own.
+            let per_stage = if stage == 0 { 5 } else { 6 };
+            trunk_naive += per_stage * activation;
+            stage += 1;
+        }
+        let (c1_height, c1_width) = config.pyramid_size(0);
+        let maxpool = c1_height * c1_width * config.stage_channels(0);
+        if maxpool > largest_activation {
+            largest_activation = maxpool;
+        }
+        let trunk_activation = aligned_len(largest_activation);
+        let trunk_stem = aligned_len(stem);
+        let trunk_tail = if trunk_stem > 3 * trunk_activation {
+            trunk_stem
+        } else {
+            3 * trunk_activation
+        };
+        let trunk = trunk_activation + trunk_tail;
+
+        // Denoiser: the widest activation is an up block's concatenated input.
+        let unet_work = aligned_len(horizon * 2 * widest);
+        let unet_skips = [
+            aligned_len((horizon / 2) * config.down_dims[1] as usize),
+            aligned_len((horizon / 4) * config.down_dims[2] as usize),
+        ];
+        let unet = 4 * unet_work + unet_skips[0] + unet_skips[1];
+        // Without reuse: every block output and intermediate of one U-Net pass (two
+        // convolutions per block, 12 blocks, plus the resampling layers and the head).
+        let unet_naive = 3 * 12 * horizon * 2 * widest + 6 * horizon * widest;
+
+        let scratch = if trunk > unet { trunk } else { unet };
+        ArenaPlan {
+            arena_bytes: 4 * (persistent + scratch),
+            without_reuse_bytes: 4 * (persistent + trunk_naive + unet_naive),
+            features,
+            states,
+            anchors,
+            sample,
+            eps,
+            global_cond,
+            activated_cond,
+            film,
+            scratch,
+            trunk_activation,
+            trunk_stem,
+            unet_work,
+            unet_skips,
+        }
+    }
+}
+
+/// A 64-byte aligned byte array, for the arena (`static mut ARENA: Arena<N>`) and for
+/// embedded weights.
+#[repr(C, align(64))]
+pub struct Arena<const N: usize>(pub [u8; N]);
+
+impl<const N: usize> Arena<N> {
+    pub const fn new() -> Self {
+        Arena([0; N])
+    }
+}
+
+impl<const N: usize> Default for Arena<N> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Bytes with 64-byte alignment: `static WEIGHTS: &Aligned<[u8]> = &Aligned(*include_bytes!(..));`
+#[repr(C, align(64))]
+pub struct Aligned<T: ?Sized>(pub T);
+
+/// Splits successive 64-byte aligned buffers off the front of an arena.
+pub(crate) struct Carver<'a> {
+    rest: &'a mut [f32],
+}
+
+impl<'a> Carver<'a> {
+    pub(crate) fn new(rest: &'a mut [f32]) -> Self {
+        Carver { rest }
+    }
+
+    /// The next buffer of `len` values (`len` is a plan length, already aligned).
+    /// The caller has checked the arena against the plan, so this never runs short.
+    pub(crate) fn take(&mut self, len: usize) -> &'a mut [f32] {
+        let rest = core::mem::take(&mut self.rest);
+        let (head, tail) = rest.split_at_mut(len.min(rest.len()));
+        self.rest = tail;
+        head
+    }
+}
+
+/// Panics at compile time if a plan for the largest supported shapes overflows.
+const _: () = {
+    let plan = ArenaPlan::new(&ModelConfig::PANDA);
+    assert!(plan.arena_bytes < plan.without_reuse_bytes);
+    assert!(PYRAMID_LEVELS == 5);
+};

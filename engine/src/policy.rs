@@ -1,0 +1,417 @@
+//! The firmware-facing API: load, plan, set the camera, push observations, infer.
+
+use crate::anchors::{self, Camera};
+use crate::config::{ModelConfig, PYRAMID_LEVELS};
+use crate::context;
+use crate::denoiser::{self, DenoiserScratch};
+use crate::error::Error;
+use crate::format::WeightsFile;
+use crate::frame;
+use crate::kernels::Kernels;
+use crate::kernels::ops::mish;
+use crate::kernels::scalar::Scalar;
+use crate::plan::{ArenaPlan, Carver};
+use crate::pyramid::{self, TrunkScratch};
+use crate::rng::NoiseRng;
+use crate::scheduler;
+use crate::weights::{FileSource, ModelWeights, SCHEDULE_COLUMNS};
+
+/// A validated weights file bound to the model it describes. Borrows the bytes: nothing is
+/// copied, so they may live in flash.
+#[derive(Clone, Copy, Debug)]
+pub struct Model<'w> {
+    file: WeightsFile<'w>,
+    weights: ModelWeights<'w>,
+}
+
+impl<'w> Model<'w> {
+    /// Checks the whole file once (header, checksum, every tensor's name, shape, bounds and
+    /// alignment). `bytes` must start on a 64-byte boundary.
+    pub fn from_bytes(bytes: &'w [u8]) -> Result<Self, Error> {
+        let file = WeightsFile::parse(bytes)?;
+        let mut source = FileSource::new(file);
+        let weights = ModelWeights::bind(file.config(), &mut source)?;
+        source.finish()?;
+        Ok(Model { file, weights })
+    }
+
+    pub fn config(&self) -> &ModelConfig {
+        self.file.config()
+    }
+
+    /// Fails unless these weights are for `config` (the one the arena was planned for).
+    pub fn expect_config(&self, config: &ModelConfig) -> Result<(), Error> {
+        if self.config() == config {
+            Ok(())
+        } else {
+            Err(Error::ConfigMismatch)
+        }
+    }
+
+    pub fn weights(&self) -> &ModelWeights<'w> {
+        &self.weights
+    }
+
+    pub fn file(&self) -> &WeightsFile<'w> {
+        &self.file
+    }
+}
+
+/// Where the initial sample `A_K` comes from.
+#[derive(Clone, Copy, Debug)]
+pub enum Noise<'n> {
+    /// The engine's portable Gaussian generator ([`NoiseRng`]) with this seed.
+    Seed(u64),
+    /// Given values, `[horizon, action_dim]` row-major (tests, replays).
+    Given(&'n [f32]),
+}
+
+/// Sees the intermediate values of an inference; for golden tests and debugging. Every
+/// method has an empty default, so an observer implements only what it needs.
+pub trait Observer {
+    /// After step `step`: the anchors `[s + 1, 2]`, the global condition `g`, the noise
+    /// prediction and the updated sample (both `[horizon, action_dim]`, normalized).
+    fn step(
+        &mut self,
+        _step: usize,
+        _anchors_uv: &[f32],
+        _global_cond: &[f32],
+        _eps: &[f32],
+        _sample: &[f32],
+    ) {
+    }
+}
+
+/// Observes nothing.
+pub struct NoObserver;
+impl Observer for NoObserver {}
+
+/// The arena's buffers for one call.
+struct Buffers<'a> {
+    features: &'a mut [f32],
+    states: &'a mut [f32],
+    anchors: &'a mut [f32],
+    sample: &'a mut [f32],
+    eps: &'a mut [f32],
+    global_cond: &'a mut [f32],
+    activated_cond: &'a mut [f32],
+    film: &'a mut [f32],
+    scratch: &'a mut [f32],
+}
+
+/// One policy instance: a model, a camera and an observation history in a borrowed arena.
+pub struct Policy<'w, 'a> {
+    model: &'w Model<'w>,
+    plan: ArenaPlan,
+    arena: &'a mut [f32],
+    kernels: &'static dyn Kernels,
+    camera: Option<Camera>,
+    /// Ring slot of the newest frame; frames are pushed into `(newest + 1) % To`.
+    newest: usize,
+    has_observation: bool,
+}
+
+impl<'w, 'a> Policy<'w, 'a> {
+    /// Checks `arena` (64-byte aligned, at least [`ArenaPlan::arena_bytes`]) for the model.
+    pub fn new(model: &'w Model<'w>, arena: &'a mut [u8]) -> Result<Self, Error> {
+        let plan = ArenaPlan::new(model.config());
+        if arena.len() < plan.arena_bytes {
+            return Err(Error::ArenaTooSmall {
+                needed: plan.arena_bytes,
+                found: arena.len(),
+            });
+        }
+        let arena = &mut arena[..plan.arena_bytes];
+        let arena: &mut [f32] =
+            bytemuck::try_cast_slice_mut(arena).map_err(|_| Error::MisalignedArena)?;
+        if (arena.as_ptr() as usize) % crate::format::ALIGN != 0 {
+            return Err(Error::MisalignedArena);
+        }
+        Ok(Policy {
+            model,
+            plan,
+            arena,
+            kernels: &Scalar,
+            camera: None,
+            newest: 0,
+            has_observation: false,
+        })
+    }
+
+    pub fn config(&self) -> &ModelConfig {
+        self.model.config()
+    }
+
+    /// The kernel implementation in use.
+    pub fn kernels_name(&self) -> &'static str {
+        self.kernels.name()
+    }
+
+    /// Sets or replaces the calibration; takes effect at the next inference.
+    pub fn set_camera(&mut self, camera: Camera) {
+        self.camera = Some(camera);
+    }
+
+    /// Forgets the observation history.
+    pub fn reset(&mut self) {
+        self.has_observation = false;
+    }
+
+    fn buffers(&mut self) -> Buffers<'_> {
+        let plan = &self.plan;
+        let mut carver = Carver::new(self.arena);
+        Buffers {
+            features: carver.take(plan.features),
+            states: carver.take(plan.states),
+            anchors: carver.take(plan.anchors),
+            sample: carver.take(plan.sample),
+            eps: carver.take(plan.eps),
+            global_cond: carver.take(plan.global_cond),
+            activated_cond: carver.take(plan.activated_cond),
+            film: carver.take(plan.film),
+            scratch: carver.take(plan.scratch),
+        }
+    }
+
+    /// Encodes a frame (`[H, W, 3]` RGB bytes) with its robot state and makes it the newest
+    /// observation. The first observation after creation or [`reset`](Self::reset) fills the
+    /// whole history (Diffusion Policy pads by repeating the first frame).
+    pub fn push_observation(&mut self, image: &[u8], state: &[f32]) -> Result<(), Error> {
+        let config = *self.config();
+        let state_dim = config.state_dim as usize;
+        if state.len() != state_dim {
+            return Err(Error::StateSize {
+                expected: state_dim,
+                found: state.len(),
+            });
+        }
+        if state.iter().any(|value| !value.is_finite()) {
+            return Err(Error::NonFiniteState);
+        }
+        let frames = config.n_obs_steps as usize;
+        let slot = if self.has_observation {
+            (self.newest + 1) % frames
+        } else {
+            0
+        };
+        let frame_len = config.feature_frame_len();
+        let kernels = self.kernels;
+        let weights = self.model.weights();
+        let plan = self.plan;
+        let first_observation = !self.has_observation;
+        let buffers = self.buffers();
+        let (first, rest) = buffers.scratch.split_at_mut(plan.trunk_activation);
+        frame::preprocess(&config, image, first)?;
+        let features = &mut buffers.features[slot * frame_len..][..frame_len];
+        let scratch = TrunkScratch {
+            first,
+            rest,
+            activation_len: plan.trunk_activation,
+        };
+        pyramid::encode(kernels, &config, &weights.pyramid, scratch, features);
+        buffers.states[slot * state_dim..][..state_dim].copy_from_slice(state);
+        if first_observation {
+            for other in 1..frames {
+                buffers
+                    .features
+                    .copy_within(0..frame_len, other * frame_len);
+                buffers.states.copy_within(0..state_dim, other * state_dim);
+            }
+        }
+        self.newest = slot;
+        self.has_observation = true;
+        Ok(())
+    }
+
+    /// Runs the denoising loop and returns the action chunk.
+    pub fn infer(&mut self, noise: Noise<'_>) -> Result<Actions<'_>, Error> {
+        self.infer_observed(noise, &mut NoObserver)
+    }
+
+    /// [`infer`](Self::infer), showing each step's intermediates to `observer`.
+    pub fn infer_observed(
+        &mut self,
+        noise: Noise<'_>,
+        observer: &mut impl Observer,
+    ) -> Result<Actions<'_>, Error> {
+        let config = *self.config();
+        let camera = self.camera.ok_or(Error::NoCamera)?;
+        if !self.has_observation {
+            return Err(Error::NoObservation);
+        }
+        let sequence = config.horizon as usize * config.action_dim as usize;
+        let frames = config.n_obs_steps as usize;
+        let state_dim = config.state_dim as usize;
+        let frame_len = config.feature_frame_len();
+        let context_dim = config.context_dim();
+        let anchor_values = config.anchor_count() * 2;
+        let newest = self.newest;
+        let oldest = (newest + 1) % frames;
+        let kernels = self.kernels;
+        let weights = self.model.weights();
+        let plan = self.plan;
+        let normalizer = weights.normalizer;
+        let buffers = self.buffers();
+
+        let sample = &mut buffers.sample[..sequence];
+        match noise {
+            Noise::Seed(seed) => NoiseRng::new(seed).fill_normal(sample),
+            Noise::Given(values) => {
+                if values.len() != sequence {
+                    return Err(Error::NoiseSize {
+                        expected: sequence,
+                        found: values.len(),
+                    });
+                }
+                if values.iter().any(|value| !value.is_finite()) {
+                    return Err(Error::NonFiniteNoise);
+                }
+                sample.copy_from_slice(values);
+            }
+        }
+
+        // The normalized states do not change during the loop: write them into g once.
+        let cond_stride = context_dim + state_dim;
+        for frame_index in 0..frames {
+            let slot = (oldest + frame_index) % frames;
+            context::normalize_state(
+                &buffers.states[slot * state_dim..][..state_dim],
+                normalizer.state_scale,
+                normalizer.state_offset,
+                &mut buffers.global_cond[frame_index * cond_stride + context_dim..][..state_dim],
+            );
+        }
+        let current_state = &buffers.states[newest * state_dim..][..state_dim];
+        let eps = &mut buffers.eps[..sequence];
+        for step in 0..config.num_inference_steps as usize {
+            let anchors_uv = &mut buffers.anchors[step * anchor_values..][..anchor_values];
+            anchors::project_anchors(
+                &config,
+                &camera,
+                sample,
+                normalizer.action_scale,
+                normalizer.action_offset,
+                current_state,
+                anchors_uv,
+            );
+            for frame_index in 0..frames {
+                let slot = (oldest + frame_index) % frames;
+                context::pool_context(
+                    &config,
+                    &buffers.features[slot * frame_len..][..frame_len],
+                    anchors_uv,
+                    &mut buffers.global_cond[frame_index * cond_stride..][..context_dim],
+                );
+            }
+            let global_cond = &buffers.global_cond[..config.global_cond_dim()];
+            let activated = &mut buffers.activated_cond[..global_cond.len()];
+            for (out, &value) in activated.iter_mut().zip(global_cond) {
+                *out = mish(value);
+            }
+            let mut carver = Carver::new(&mut *buffers.scratch);
+            let work = [
+                carver.take(plan.unet_work),
+                carver.take(plan.unet_work),
+                carver.take(plan.unet_work),
+                carver.take(plan.unet_work),
+            ];
+            let skips = [
+                carver.take(plan.unet_skips[0]),
+                carver.take(plan.unet_skips[1]),
+            ];
+            let scratch = DenoiserScratch {
+                work,
+                skips,
+                film: &mut *buffers.film,
+            };
+            denoiser::predict_noise(
+                kernels,
+                &config,
+                &weights.denoiser,
+                step,
+                sample,
+                activated,
+                scratch,
+                eps,
+            );
+            if eps.iter().any(|value| !value.is_finite()) {
+                return Err(Error::NonFiniteResult { step });
+            }
+            let coefficients = &weights.schedule[step * SCHEDULE_COLUMNS..][..SCHEDULE_COLUMNS];
+            scheduler::ddim_step(coefficients, config.clip_sample, sample, eps);
+            if sample.iter().any(|value| !value.is_finite()) {
+                return Err(Error::NonFiniteResult { step });
+            }
+            observer.step(step, anchors_uv, global_cond, eps, sample);
+        }
+
+        let action_dim = config.action_dim as usize;
+        for row in sample.chunks_exact_mut(action_dim) {
+            for ((value, &scale), &offset) in row
+                .iter_mut()
+                .zip(normalizer.action_scale)
+                .zip(normalizer.action_offset)
+            {
+                *value = (*value - offset) / scale;
+            }
+        }
+        if sample.iter().any(|value| !value.is_finite()) {
+            return Err(Error::NonFiniteResult {
+                step: config.num_inference_steps as usize,
+            });
+        }
+        Ok(Actions {
+            config,
+            action_pred: sample,
+            anchors: &buffers.anchors[..config.num_inference_steps as usize * anchor_values],
+        })
+    }
+
+    /// Projected map F(level + 1) of history frame `frame` (0 = oldest), `[H_n, W_n, d]`.
+    pub fn feature_map(&mut self, frame: usize, level: usize) -> Option<&[f32]> {
+        let config = *self.config();
+        let frames = config.n_obs_steps as usize;
+        if !self.has_observation || frame >= frames || level >= PYRAMID_LEVELS {
+            return None;
+        }
+        let slot = (self.newest + 1 + frame) % frames;
+        let frame_len = config.feature_frame_len();
+        let feature_dim = config.feature_dim as usize;
+        let start: usize = (0..level)
+            .map(|l| {
+                let (h, w) = config.pyramid_size(l);
+                h * w * feature_dim
+            })
+            .sum();
+        let (height, width) = config.pyramid_size(level);
+        let features = self.buffers().features;
+        Some(&features[slot * frame_len + start..][..height * width * feature_dim])
+    }
+}
+
+/// The result of one inference, borrowed from the arena until the next call.
+#[derive(Debug)]
+pub struct Actions<'a> {
+    config: ModelConfig,
+    action_pred: &'a [f32],
+    anchors: &'a [f32],
+}
+
+impl<'a> Actions<'a> {
+    /// The whole denoised chunk, unnormalized: `[horizon, action_dim]`.
+    pub fn action_pred(&self) -> &'a [f32] {
+        self.action_pred
+    }
+
+    /// The part to execute: rows `To - 1 .. To - 1 + n_action_steps`.
+    pub fn action(&self) -> &'a [f32] {
+        let action_dim = self.config.action_dim as usize;
+        let start = (self.config.n_obs_steps as usize - 1) * action_dim;
+        &self.action_pred[start..start + self.config.n_action_steps as usize * action_dim]
+    }
+
+    /// Anchor pixels of every step, `[steps, s + 1, 2]`, NaN where invalid.
+    pub fn anchors_uv(&self) -> &'a [f32] {
+        self.anchors
+    }
+}

@@ -1,0 +1,388 @@
+//! The model's tensors, bound by name and shape to a [`WeightsFile`] (or to anything else
+//! implementing [`TensorSource`], which is how the weights tool learns what to write).
+//!
+//! The order in which [`ModelWeights::bind`] asks for tensors *is* the layout of the weights
+//! file: the tool records it and writes the tensors in that order, the engine reads them back
+//! in that order and checks every name and shape.
+//!
+//! Layouts are the engine's, not PyTorch's (the tool packs them offline):
+//! - 2-D convolutions: `[kh, kw, in, out]`, feature maps `[H, W, C]`;
+//! - 1-D convolutions and transposed convolutions: `[k, in, out]`, sequences `[T, C]`;
+//! - FiLM: the global-condition part of the linear layer `[2 out, global_cond_dim]`, and the
+//!   time-embedding part with the bias folded in, precomputed per inference step `[steps, 2 out]`;
+//! - BatchNorm does not appear: it is folded into the convolution before it.
+
+use core::fmt::{self, Write};
+
+use crate::config::{BackboneNorm, ModelConfig, PYRAMID_LEVELS, UNET_LEVELS};
+use crate::error::Error;
+use crate::format::{DType, WeightsFile};
+
+/// Anything that can hand out the model's tensors in order.
+pub trait TensorSource<'w> {
+    /// The next tensor, which must be called `name` and have exactly `dims`.
+    fn f32_tensor(&mut self, name: fmt::Arguments<'_>, dims: &[usize]) -> Result<&'w [f32], Error>;
+}
+
+/// Reads tensors in place from a validated file, in table order.
+pub struct FileSource<'w> {
+    file: WeightsFile<'w>,
+    next: usize,
+}
+
+impl<'w> FileSource<'w> {
+    pub fn new(file: WeightsFile<'w>) -> Self {
+        FileSource { file, next: 0 }
+    }
+
+    /// Fails unless every tensor of the file was used.
+    pub fn finish(self) -> Result<(), Error> {
+        if self.next == self.file.tensor_count() {
+            Ok(())
+        } else {
+            Err(Error::ExtraTensors)
+        }
+    }
+}
+
+impl<'w> TensorSource<'w> for FileSource<'w> {
+    fn f32_tensor(&mut self, name: fmt::Arguments<'_>, dims: &[usize]) -> Result<&'w [f32], Error> {
+        let index = self.next;
+        let entry = self.file.entry(index)?;
+        let unexpected = Error::UnexpectedTensor { index };
+        let mut expected_name = heapless::String::<64>::new();
+        expected_name.write_fmt(name).map_err(|_| unexpected)?;
+        if entry.name != expected_name.as_str() || entry.dtype != DType::F32 || entry.dims() != dims
+        {
+            return Err(unexpected);
+        }
+        self.next += 1;
+        bytemuck::try_cast_slice(self.file.data(&entry))
+            .map_err(|_| Error::BadTensorEntry { index })
+    }
+}
+
+/// A convolution (any rank) or linear layer: packed weight and bias.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Conv<'w> {
+    pub weight: &'w [f32],
+    pub bias: &'w [f32],
+}
+
+/// GroupNorm affine parameters.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Norm<'w> {
+    pub gamma: &'w [f32],
+    pub beta: &'w [f32],
+}
+
+/// A trunk convolution and its normalization: `None` when BatchNorm was folded into it.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ConvNorm<'w> {
+    pub conv: Conv<'w>,
+    pub norm: Option<Norm<'w>>,
+}
+
+/// torchvision's BasicBlock.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct BasicBlock<'w> {
+    pub first: ConvNorm<'w>,
+    pub second: ConvNorm<'w>,
+    pub downsample: Option<ConvNorm<'w>>,
+}
+
+/// ResNet-18 trunk and the five 3x3 projections.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct PyramidWeights<'w> {
+    pub stem: ConvNorm<'w>,
+    pub stages: [[BasicBlock<'w>; 2]; 4],
+    pub projections: [Conv<'w>; PYRAMID_LEVELS],
+}
+
+/// Diffusion Policy's ConditionalResidualBlock1D with FiLM.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ResidualBlock<'w> {
+    pub in_channels: usize,
+    pub out_channels: usize,
+    pub conv0: Conv<'w>,
+    pub norm0: Norm<'w>,
+    pub conv1: Conv<'w>,
+    pub norm1: Norm<'w>,
+    /// `[2 out, global_cond_dim]`: rows 0..out give the scale, out..2 out the bias.
+    pub film_weight: &'w [f32],
+    /// `[steps, 2 out]`: the time-embedding term plus the linear bias, per inference step.
+    pub film_table: &'w [f32],
+    pub residual: Option<Conv<'w>>,
+}
+
+/// ConditionalUnet1D.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct DenoiserWeights<'w> {
+    pub down: [[ResidualBlock<'w>; 2]; UNET_LEVELS],
+    pub downsample: [Conv<'w>; UNET_LEVELS - 1],
+    pub mid: [ResidualBlock<'w>; 2],
+    pub up: [[ResidualBlock<'w>; 2]; UNET_LEVELS - 1],
+    pub upsample: [Conv<'w>; UNET_LEVELS - 1],
+    pub final_conv: Conv<'w>,
+    pub final_norm: Norm<'w>,
+    pub final_projection: Conv<'w>,
+}
+
+/// Diffusion Policy's LinearNormalizer: `normalized = raw * scale + offset`.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Normalizer<'w> {
+    pub action_scale: &'w [f32],
+    pub action_offset: &'w [f32],
+    pub state_scale: &'w [f32],
+    pub state_offset: &'w [f32],
+}
+
+/// Per inference step: `sqrt(a_t), sqrt(1 - a_t), sqrt(a_prev), sqrt(1 - a_prev)`.
+pub const SCHEDULE_COLUMNS: usize = 4;
+
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ModelWeights<'w> {
+    pub pyramid: PyramidWeights<'w>,
+    pub denoiser: DenoiserWeights<'w>,
+    pub normalizer: Normalizer<'w>,
+    /// `[steps, 4]`, see [`SCHEDULE_COLUMNS`].
+    pub schedule: &'w [f32],
+}
+
+fn conv<'w>(
+    source: &mut impl TensorSource<'w>,
+    name: fmt::Arguments<'_>,
+    weight_dims: &[usize],
+) -> Result<Conv<'w>, Error> {
+    let out = weight_dims[weight_dims.len() - 1];
+    Ok(Conv {
+        weight: source.f32_tensor(format_args!("{name}.weight"), weight_dims)?,
+        bias: source.f32_tensor(format_args!("{name}.bias"), &[out])?,
+    })
+}
+
+fn norm<'w>(
+    source: &mut impl TensorSource<'w>,
+    name: fmt::Arguments<'_>,
+    channels: usize,
+) -> Result<Norm<'w>, Error> {
+    Ok(Norm {
+        gamma: source.f32_tensor(format_args!("{name}.weight"), &[channels])?,
+        beta: source.f32_tensor(format_args!("{name}.bias"), &[channels])?,
+    })
+}
+
+fn conv_norm<'w>(
+    source: &mut impl TensorSource<'w>,
+    config: &ModelConfig,
+    conv_name: fmt::Arguments<'_>,
+    norm_name: fmt::Arguments<'_>,
+    weight_dims: &[usize],
+) -> Result<ConvNorm<'w>, Error> {
+    let conv = conv(source, conv_name, weight_dims)?;
+    let norm = match config.backbone_norm {
+        BackboneNorm::Group => Some(norm(source, norm_name, weight_dims[3])?),
+        BackboneNorm::Batch => None,
+    };
+    Ok(ConvNorm { conv, norm })
+}
+
+fn residual_block<'w>(
+    source: &mut impl TensorSource<'w>,
+    config: &ModelConfig,
+    name: fmt::Arguments<'_>,
+    in_channels: usize,
+    out_channels: usize,
+) -> Result<ResidualBlock<'w>, Error> {
+    let kernel = config.kernel_size as usize;
+    let steps = config.num_inference_steps as usize;
+    Ok(ResidualBlock {
+        in_channels,
+        out_channels,
+        conv0: conv(
+            source,
+            format_args!("{name}.conv0"),
+            &[kernel, in_channels, out_channels],
+        )?,
+        norm0: norm(source, format_args!("{name}.norm0"), out_channels)?,
+        conv1: conv(
+            source,
+            format_args!("{name}.conv1"),
+            &[kernel, out_channels, out_channels],
+        )?,
+        norm1: norm(source, format_args!("{name}.norm1"), out_channels)?,
+        film_weight: source.f32_tensor(
+            format_args!("{name}.film.weight"),
+            &[2 * out_channels, config.global_cond_dim()],
+        )?,
+        film_table: source.f32_tensor(
+            format_args!("{name}.film.table"),
+            &[steps, 2 * out_channels],
+        )?,
+        residual: if in_channels != out_channels {
+            Some(conv(
+                source,
+                format_args!("{name}.residual"),
+                &[1, in_channels, out_channels],
+            )?)
+        } else {
+            None
+        },
+    })
+}
+
+impl<'w> ModelWeights<'w> {
+    /// Asks `source` for every tensor of the model described by `config`, in file order.
+    pub fn bind(config: &ModelConfig, source: &mut impl TensorSource<'w>) -> Result<Self, Error> {
+        config.validate()?;
+        let mut weights = ModelWeights::default();
+
+        let width = config.stage_channels(0);
+        let pyramid = &mut weights.pyramid;
+        pyramid.stem = conv_norm(
+            source,
+            config,
+            format_args!("backbone.conv1"),
+            format_args!("backbone.bn1"),
+            &[7, 7, 3, width],
+        )?;
+        let mut in_channels = width;
+        for (stage, blocks) in pyramid.stages.iter_mut().enumerate() {
+            let out_channels = config.stage_channels(stage);
+            let layer = stage + 1;
+            for (index, block) in blocks.iter_mut().enumerate() {
+                let block_in = if index == 0 {
+                    in_channels
+                } else {
+                    out_channels
+                };
+                block.first = conv_norm(
+                    source,
+                    config,
+                    format_args!("backbone.layer{layer}.{index}.conv1"),
+                    format_args!("backbone.layer{layer}.{index}.bn1"),
+                    &[3, 3, block_in, out_channels],
+                )?;
+                block.second = conv_norm(
+                    source,
+                    config,
+                    format_args!("backbone.layer{layer}.{index}.conv2"),
+                    format_args!("backbone.layer{layer}.{index}.bn2"),
+                    &[3, 3, out_channels, out_channels],
+                )?;
+                block.downsample = if index == 0 && stage > 0 {
+                    Some(conv_norm(
+                        source,
+                        config,
+                        format_args!("backbone.layer{layer}.0.downsample.0"),
+                        format_args!("backbone.layer{layer}.0.downsample.1"),
+                        &[1, 1, block_in, out_channels],
+                    )?)
+                } else {
+                    None
+                };
+            }
+            in_channels = out_channels;
+        }
+        let feature_dim = config.feature_dim as usize;
+        for (level, projection) in pyramid.projections.iter_mut().enumerate() {
+            *projection = conv(
+                source,
+                format_args!("proj.{level}"),
+                &[3, 3, config.pyramid_channels(level), feature_dim],
+            )?;
+        }
+
+        let denoiser = &mut weights.denoiser;
+        let dims = config.down_dims.map(|dim| dim as usize);
+        let mut level_in = config.action_dim as usize;
+        for (level, blocks) in denoiser.down.iter_mut().enumerate() {
+            blocks[0] = residual_block(
+                source,
+                config,
+                format_args!("unet.down.{level}.0"),
+                level_in,
+                dims[level],
+            )?;
+            blocks[1] = residual_block(
+                source,
+                config,
+                format_args!("unet.down.{level}.1"),
+                dims[level],
+                dims[level],
+            )?;
+            if level + 1 < UNET_LEVELS {
+                denoiser.downsample[level] = conv(
+                    source,
+                    format_args!("unet.down.{level}.downsample"),
+                    &[3, dims[level], dims[level]],
+                )?;
+            }
+            level_in = dims[level];
+        }
+        let deepest = dims[UNET_LEVELS - 1];
+        for (index, block) in denoiser.mid.iter_mut().enumerate() {
+            *block = residual_block(
+                source,
+                config,
+                format_args!("unet.mid.{index}"),
+                deepest,
+                deepest,
+            )?;
+        }
+        for (index, blocks) in denoiser.up.iter_mut().enumerate() {
+            // Up level `index` mirrors down level UNET_LEVELS - 2 - index, whose output it
+            // produces; its input is the level below concatenated with that level's skip.
+            let level = UNET_LEVELS - 2 - index;
+            let below = dims[level + 1];
+            blocks[0] = residual_block(
+                source,
+                config,
+                format_args!("unet.up.{index}.0"),
+                2 * below,
+                dims[level],
+            )?;
+            blocks[1] = residual_block(
+                source,
+                config,
+                format_args!("unet.up.{index}.1"),
+                dims[level],
+                dims[level],
+            )?;
+            denoiser.upsample[index] = conv(
+                source,
+                format_args!("unet.up.{index}.upsample"),
+                &[4, dims[level], dims[level]],
+            )?;
+        }
+        let kernel = config.kernel_size as usize;
+        denoiser.final_conv = conv(
+            source,
+            format_args!("unet.final.conv"),
+            &[kernel, dims[0], dims[0]],
+        )?;
+        denoiser.final_norm = norm(source, format_args!("unet.final.norm"), dims[0])?;
+        denoiser.final_projection = conv(
+            source,
+            format_args!("unet.final.projection"),
+            &[1, dims[0], config.action_dim as usize],
+        )?;
+
+        let action_dim = config.action_dim as usize;
+        let state_dim = config.state_dim as usize;
+        weights.normalizer = Normalizer {
+            action_scale: source
+                .f32_tensor(format_args!("normalizer.action.scale"), &[action_dim])?,
+            action_offset: source
+                .f32_tensor(format_args!("normalizer.action.offset"), &[action_dim])?,
+            state_scale: source.f32_tensor(format_args!("normalizer.state.scale"), &[state_dim])?,
+            state_offset: source
+                .f32_tensor(format_args!("normalizer.state.offset"), &[state_dim])?,
+        };
+        weights.schedule = source.f32_tensor(
+            format_args!("scheduler.ddim"),
+            &[config.num_inference_steps as usize, SCHEDULE_COLUMNS],
+        )?;
+        Ok(weights)
+    }
+}

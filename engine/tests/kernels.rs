@@ -1,0 +1,358 @@
+//! The scalar kernels against textbook definitions written the PyTorch way (channels-first
+//! tensors, PyTorch weight layouts, f64 accumulation), on random shapes. Tolerance: 1e-5
+//! relative to the sum of |terms|, the bound for f32 accumulation of up to ~5000 products.
+
+use scdp_engine::kernels::ops::{self, Activation};
+use scdp_engine::kernels::scalar::Scalar;
+use scdp_engine::kernels::{Accumulate, ConvShape, Kernels};
+
+struct Lcg(u64);
+
+impl Lcg {
+    fn next(&mut self) -> f32 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((self.0 >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+    }
+
+    fn vec(&mut self, len: usize) -> Vec<f32> {
+        (0..len).map(|_| self.next()).collect()
+    }
+
+    fn below(&mut self, n: usize) -> usize {
+        ((self.next() + 1.0) * 0.5 * n as f32) as usize % n
+    }
+}
+
+/// PyTorch Conv2d: input `[C, H, W]`, weight `[out, in, kh, kw]`. Returns `[H', W', out]`
+/// values and the matching sums of |terms| for the tolerance.
+fn reference_conv(
+    shape: &ConvShape,
+    input_chw: &[f32],
+    weight_oihw: &[f32],
+    bias: &[f32],
+) -> (Vec<f64>, Vec<f64>) {
+    let (oh, ow) = (shape.out_height(), shape.out_width());
+    let mut out = vec![0.0; oh * ow * shape.out_channels];
+    let mut magnitude = vec![0.0; out.len()];
+    for o in 0..shape.out_channels {
+        for y in 0..oh {
+            for x in 0..ow {
+                let mut sum = bias[o] as f64;
+                let mut abs = (bias[o] as f64).abs();
+                for i in 0..shape.in_channels {
+                    for ky in 0..shape.kernel_height {
+                        for kx in 0..shape.kernel_width {
+                            let iy =
+                                (y * shape.stride + ky) as isize - shape.padding_height as isize;
+                            let ix =
+                                (x * shape.stride + kx) as isize - shape.padding_width as isize;
+                            if iy < 0
+                                || ix < 0
+                                || iy >= shape.in_height as isize
+                                || ix >= shape.in_width as isize
+                            {
+                                continue;
+                            }
+                            let v = input_chw
+                                [(i * shape.in_height + iy as usize) * shape.in_width + ix as usize]
+                                as f64;
+                            let w = weight_oihw[((o * shape.in_channels + i) * shape.kernel_height
+                                + ky)
+                                * shape.kernel_width
+                                + kx] as f64;
+                            sum += v * w;
+                            abs += (v * w).abs();
+                        }
+                    }
+                }
+                out[(y * ow + x) * shape.out_channels + o] = sum;
+                magnitude[(y * ow + x) * shape.out_channels + o] = abs;
+            }
+        }
+    }
+    (out, magnitude)
+}
+
+fn to_hwc(chw: &[f32], c: usize, h: usize, w: usize) -> Vec<f32> {
+    let mut out = vec![0.0; chw.len()];
+    for ch in 0..c {
+        for p in 0..h * w {
+            out[p * c + ch] = chw[ch * h * w + p];
+        }
+    }
+    out
+}
+
+fn pack_oihw(weight: &[f32], o: usize, i: usize, kh: usize, kw: usize) -> Vec<f32> {
+    let mut out = vec![0.0; weight.len()];
+    for a in 0..o {
+        for b in 0..i {
+            for y in 0..kh {
+                for x in 0..kw {
+                    out[((y * kw + x) * i + b) * o + a] = weight[((a * i + b) * kh + y) * kw + x];
+                }
+            }
+        }
+    }
+    out
+}
+
+fn assert_close(found: &[f32], expected: &[f64], magnitude: &[f64], what: &str) {
+    assert_eq!(found.len(), expected.len(), "{what}: length");
+    for (index, ((&f, &e), &m)) in found.iter().zip(expected).zip(magnitude).enumerate() {
+        let tolerance = 1e-5 * m.max(1.0);
+        assert!(
+            (f as f64 - e).abs() <= tolerance,
+            "{what}[{index}]: {f} vs {e} (tolerance {tolerance})"
+        );
+    }
+}
+
+#[test]
+fn convolution_matches_pytorch_definition_on_random_shapes() {
+    let mut rng = Lcg(7);
+    let kernels: &dyn Kernels = &Scalar;
+    for case in 0..60 {
+        let kernel = [1, 3, 5, 7][rng.below(4)];
+        let one_dimensional = case % 3 == 0;
+        let stride = 1 + rng.below(2);
+        let padding = rng.below(kernel / 2 + 1);
+        let in_channels = 1 + rng.below(9);
+        let out_channels = 1 + rng.below(11);
+        let shape = if one_dimensional {
+            ConvShape::sequence(
+                kernel + rng.below(9),
+                in_channels,
+                out_channels,
+                kernel,
+                stride,
+                padding,
+            )
+        } else {
+            ConvShape::square(
+                (kernel + rng.below(7), kernel + rng.below(8), in_channels),
+                out_channels,
+                kernel,
+                stride,
+                padding,
+            )
+        };
+        let input_chw = rng.vec(shape.input_len());
+        let weight = rng.vec(shape.weight_len());
+        let bias = rng.vec(out_channels);
+        let (expected, magnitude) = reference_conv(&shape, &input_chw, &weight, &bias);
+        let input = to_hwc(&input_chw, in_channels, shape.in_height, shape.in_width);
+        let packed = pack_oihw(
+            &weight,
+            out_channels,
+            in_channels,
+            shape.kernel_height,
+            shape.kernel_width,
+        );
+        let mut output = vec![f32::NAN; shape.output_len()];
+        kernels.conv(
+            &shape,
+            &input,
+            &packed,
+            &bias,
+            &mut output,
+            Accumulate::Overwrite,
+        );
+        assert_close(
+            &output,
+            &expected,
+            &magnitude,
+            &format!("case {case} {shape:?}"),
+        );
+
+        // Accumulate adds exactly the same convolution on top of what is there.
+        let before = rng.vec(shape.output_len());
+        let mut accumulated = before.clone();
+        kernels.conv(
+            &shape,
+            &input,
+            &packed,
+            &bias,
+            &mut accumulated,
+            Accumulate::Add,
+        );
+        let expected_sum: Vec<f64> = expected
+            .iter()
+            .zip(&before)
+            .map(|(e, b)| e + *b as f64)
+            .collect();
+        assert_close(
+            &accumulated,
+            &expected_sum,
+            &magnitude,
+            &format!("accumulate case {case}"),
+        );
+    }
+}
+
+#[test]
+fn upsample_matches_pytorch_conv_transpose_definition() {
+    let mut rng = Lcg(11);
+    for case in 0..20 {
+        let length = 1 + rng.below(9);
+        let in_channels = 1 + rng.below(6);
+        let out_channels = 1 + rng.below(6);
+        let input_ct = rng.vec(in_channels * length);
+        // PyTorch ConvTranspose1d weight: [in, out, 4]; y[o, t] = b[o] + sum x[i, s] w[i, o, k]
+        // over t = 2 s + k - 1.
+        let weight = rng.vec(in_channels * out_channels * 4);
+        let bias = rng.vec(out_channels);
+        let mut expected = vec![0.0f64; 2 * length * out_channels];
+        let mut magnitude = vec![0.0f64; expected.len()];
+        for t in 0..2 * length {
+            for o in 0..out_channels {
+                let mut sum = bias[o] as f64;
+                let mut abs = sum.abs();
+                for s in 0..length {
+                    for k in 0..4 {
+                        if 2 * s + k == t + 1 {
+                            for i in 0..in_channels {
+                                let term = input_ct[i * length + s] as f64
+                                    * weight[(i * out_channels + o) * 4 + k] as f64;
+                                sum += term;
+                                abs += term.abs();
+                            }
+                        }
+                    }
+                }
+                expected[t * out_channels + o] = sum;
+                magnitude[t * out_channels + o] = abs;
+            }
+        }
+        let input = to_hwc(&input_ct, in_channels, 1, length);
+        let mut packed = vec![0.0; weight.len()];
+        for i in 0..in_channels {
+            for o in 0..out_channels {
+                for k in 0..4 {
+                    packed[(k * in_channels + i) * out_channels + o] =
+                        weight[(i * out_channels + o) * 4 + k];
+                }
+            }
+        }
+        let mut output = vec![f32::NAN; expected.len()];
+        Scalar.upsample_conv(
+            length,
+            in_channels,
+            out_channels,
+            &input,
+            &packed,
+            &bias,
+            &mut output,
+        );
+        assert_close(
+            &output,
+            &expected,
+            &magnitude,
+            &format!("upsample case {case}"),
+        );
+    }
+}
+
+#[test]
+fn matvec_adds_base() {
+    let mut rng = Lcg(3);
+    let (rows, cols) = (13, 29);
+    let weight = rng.vec(rows * cols);
+    let input = rng.vec(cols);
+    let base = rng.vec(rows);
+    let mut output = vec![0.0; rows];
+    Scalar.matvec(&weight, &input, &base, &mut output);
+    for r in 0..rows {
+        let expected: f64 = base[r] as f64
+            + (0..cols)
+                .map(|c| weight[r * cols + c] as f64 * input[c] as f64)
+                .sum::<f64>();
+        assert!((output[r] as f64 - expected).abs() < 1e-5, "row {r}");
+    }
+}
+
+#[test]
+fn mish_matches_definition_including_the_softplus_threshold() {
+    for i in -4000..4000 {
+        let x = i as f32 * 0.01;
+        let softplus = if x as f64 > 20.0 {
+            x as f64
+        } else {
+            (x as f64).exp().ln_1p()
+        };
+        let expected = x as f64 * softplus.tanh();
+        let found = ops::mish(x) as f64;
+        // A few f32 ulps: the single-exponential form rounds differently from exp/log1p/tanh.
+        assert!(
+            (found - expected).abs() <= 6e-7 * expected.abs().max(1e-3),
+            "mish({x}) = {found}, expected {expected}"
+        );
+    }
+    assert_eq!(ops::mish(25.0), 25.0);
+    assert!(ops::mish(-100.0).abs() < 1e-30);
+}
+
+#[test]
+fn group_norm_matches_definition() {
+    let mut rng = Lcg(5);
+    let (positions, channels, groups) = (37, 24, 6);
+    let data = rng.vec(positions * channels);
+    let gamma = rng.vec(channels);
+    let beta = rng.vec(channels);
+    for activation in [Activation::None, Activation::Relu, Activation::Mish] {
+        let mut normalized = data.clone();
+        ops::group_norm(&mut normalized, channels, groups, &gamma, &beta, activation);
+        let size = channels / groups;
+        for g in 0..groups {
+            let values: Vec<f64> = (0..positions)
+                .flat_map(|p| (0..size).map(move |c| (p, g * size + c)))
+                .map(|(p, c)| data[p * channels + c] as f64)
+                .collect();
+            let mean = values.iter().sum::<f64>() / values.len() as f64;
+            let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / values.len() as f64;
+            for p in 0..positions {
+                for c in g * size..(g + 1) * size {
+                    let y = (data[p * channels + c] as f64 - mean) / (var + 1e-5).sqrt()
+                        * gamma[c] as f64
+                        + beta[c] as f64;
+                    let expected = match activation {
+                        Activation::None => y,
+                        Activation::Relu => y.max(0.0),
+                        Activation::Mish => y * y.exp().ln_1p().tanh(),
+                    };
+                    let found = normalized[p * channels + c] as f64;
+                    assert!(
+                        (found - expected).abs() < 1e-5,
+                        "{activation:?} p{p} c{c}: {found} vs {expected}"
+                    );
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn max_pool_ignores_padding_even_for_negative_inputs() {
+    let (h, w, c) = (5, 4, 2);
+    let input: Vec<f32> = (0..h * w * c).map(|i| -(i as f32) - 1.0).collect();
+    let mut output = vec![0.0; 3 * 2 * c];
+    ops::max_pool_3x3_stride_2(&input, (h, w, c), &mut output);
+    for oy in 0..3 {
+        for ox in 0..2 {
+            for ch in 0..c {
+                let mut best = f32::NEG_INFINITY;
+                for y in (2 * oy) as isize - 1..=(2 * oy) as isize + 1 {
+                    for x in (2 * ox) as isize - 1..=(2 * ox) as isize + 1 {
+                        if y >= 0 && x >= 0 && (y as usize) < h && (x as usize) < w {
+                            best = best.max(input[(y as usize * w + x as usize) * c + ch]);
+                        }
+                    }
+                }
+                assert_eq!(output[(oy * 2 + ox) * c + ch], best);
+            }
+        }
+    }
+}
