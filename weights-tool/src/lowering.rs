@@ -1,0 +1,574 @@
+//! PyTorch state dict -> the engine's tensors. All weight-only work happens here, offline,
+//! so the engine only does runtime work:
+//! - convolution weights repacked to the engine's layouts (`[kh, kw, in, out]`, `[k, in, out]`);
+//! - eval-mode BatchNorm folded into the convolution before it;
+//! - the FiLM linear layers split: the time-embedding half, with its bias, evaluated for each
+//!   inference timestep (the diffusion step encoder never runs on the robot); the
+//!   global-condition half kept as a matrix;
+//! - the DDIM coefficients of each inference step.
+//!
+//! Arithmetic that combines weights is done in f64 and rounded once.
+
+use std::collections::BTreeMap;
+
+use anyhow::{Context, Result, bail, ensure};
+use scdp_engine::config::{BackboneNorm, ModelConfig, UNET_LEVELS};
+
+/// A PyTorch tensor as the lowering reads it: shape and row-major values.
+pub struct TensorRef<'a> {
+    pub shape: &'a [usize],
+    pub data: &'a [f32],
+}
+
+/// Looks up a state-dict key.
+pub trait StateDictLookup {
+    fn tensor(&self, key: &str) -> Option<TensorRef<'_>>;
+}
+
+/// The engine's tensors by engine name, in engine layout.
+pub type Lowered = BTreeMap<String, Vec<f32>>;
+
+struct Lowering<'s, S: StateDictLookup> {
+    state: &'s S,
+    config: ModelConfig,
+    out: Lowered,
+}
+
+const BATCH_NORM_EPSILON: f64 = 1e-5;
+
+fn mish(x: f64) -> f64 {
+    let softplus = if x > 20.0 { x } else { x.exp().ln_1p() };
+    x * softplus.tanh()
+}
+
+impl<S: StateDictLookup> Lowering<'_, S> {
+    fn get(&self, key: &str, shape: &[usize]) -> Result<&[f32]> {
+        let tensor = self
+            .state
+            .tensor(key)
+            .with_context(|| format!("state dict has no key `{key}`"))?;
+        ensure!(
+            tensor.shape == shape,
+            "`{key}` has shape {:?}, expected {shape:?}",
+            tensor.shape
+        );
+        Ok(tensor.data)
+    }
+
+    fn put(&mut self, name: String, values: Vec<f32>) {
+        self.out.insert(name, values);
+    }
+
+    /// `[out, in, kh, kw]` (or `[out, in, k]`) -> `[kh, kw, in, out]` (or `[k, in, out]`),
+    /// each output channel multiplied by `scale[out]`.
+    fn pack_conv(
+        weight: &[f32],
+        out: usize,
+        inputs: usize,
+        taps: usize,
+        scale: &[f64],
+    ) -> Vec<f32> {
+        let mut packed = vec![0.0; weight.len()];
+        for o in 0..out {
+            for i in 0..inputs {
+                for tap in 0..taps {
+                    let value = weight[(o * inputs + i) * taps + tap] as f64 * scale[o];
+                    packed[(tap * inputs + i) * out + o] = value as f32;
+                }
+            }
+        }
+        packed
+    }
+
+    /// A trunk convolution (no bias in PyTorch) and the norm after it.
+    fn trunk_conv(
+        &mut self,
+        conv_key: &str,
+        norm_key: &str,
+        engine: &str,
+        norm_engine: &str,
+        dims: [usize; 4],
+    ) -> Result<()> {
+        let [out, inputs, kh, kw] = dims;
+        let weight = self.get(&format!("{conv_key}.weight"), &dims)?.to_vec();
+        match self.config.backbone_norm {
+            BackboneNorm::Group => {
+                let gamma = self.get(&format!("{norm_key}.weight"), &[out])?.to_vec();
+                let beta = self.get(&format!("{norm_key}.bias"), &[out])?.to_vec();
+                self.put(
+                    format!("{engine}.weight"),
+                    Self::pack_conv(&weight, out, inputs, kh * kw, &vec![1.0; out]),
+                );
+                self.put(format!("{engine}.bias"), vec![0.0; out]);
+                self.put(format!("{norm_engine}.weight"), gamma);
+                self.put(format!("{norm_engine}.bias"), beta);
+            }
+            BackboneNorm::Batch => {
+                let gamma = self.get(&format!("{norm_key}.weight"), &[out])?;
+                let beta = self.get(&format!("{norm_key}.bias"), &[out])?;
+                let mean = self.get(&format!("{norm_key}.running_mean"), &[out])?;
+                let var = self.get(&format!("{norm_key}.running_var"), &[out])?;
+                let scale: Vec<f64> = (0..out)
+                    .map(|o| gamma[o] as f64 / (var[o] as f64 + BATCH_NORM_EPSILON).sqrt())
+                    .collect();
+                let bias: Vec<f32> = (0..out)
+                    .map(|o| (beta[o] as f64 - mean[o] as f64 * scale[o]) as f32)
+                    .collect();
+                self.put(
+                    format!("{engine}.weight"),
+                    Self::pack_conv(&weight, out, inputs, kh * kw, &scale),
+                );
+                self.put(format!("{engine}.bias"), bias);
+            }
+        }
+        Ok(())
+    }
+
+    /// A convolution with bias: `[out, in, taps...]` -> packed.
+    fn conv(
+        &mut self,
+        key: &str,
+        engine: &str,
+        out: usize,
+        inputs: usize,
+        taps: &[usize],
+    ) -> Result<()> {
+        let mut dims = vec![out, inputs];
+        dims.extend_from_slice(taps);
+        let weight = self.get(&format!("{key}.weight"), &dims)?.to_vec();
+        let bias = self.get(&format!("{key}.bias"), &[out])?.to_vec();
+        let tap_count = taps.iter().product();
+        self.put(
+            format!("{engine}.weight"),
+            Self::pack_conv(&weight, out, inputs, tap_count, &vec![1.0; out]),
+        );
+        self.put(format!("{engine}.bias"), bias);
+        Ok(())
+    }
+
+    fn copy(&mut self, key: &str, engine: String, len: usize) -> Result<()> {
+        let values = self.get(key, &[len])?.to_vec();
+        self.put(engine, values);
+        Ok(())
+    }
+
+    fn backbone(&mut self) -> Result<()> {
+        let prefix = "obs_encoder.backbone";
+        let width = self.config.stage_channels(0);
+        self.trunk_conv(
+            &format!("{prefix}.conv1"),
+            &format!("{prefix}.bn1"),
+            "backbone.conv1",
+            "backbone.bn1",
+            [width, 3, 7, 7],
+        )?;
+        let mut in_channels = width;
+        for stage in 0..4 {
+            let out = self.config.stage_channels(stage);
+            let layer = stage + 1;
+            for block in 0..2 {
+                let block_in = if block == 0 { in_channels } else { out };
+                let key = format!("{prefix}.layer{layer}.{block}");
+                let engine = format!("backbone.layer{layer}.{block}");
+                self.trunk_conv(
+                    &format!("{key}.conv1"),
+                    &format!("{key}.bn1"),
+                    &format!("{engine}.conv1"),
+                    &format!("{engine}.bn1"),
+                    [out, block_in, 3, 3],
+                )?;
+                self.trunk_conv(
+                    &format!("{key}.conv2"),
+                    &format!("{key}.bn2"),
+                    &format!("{engine}.conv2"),
+                    &format!("{engine}.bn2"),
+                    [out, out, 3, 3],
+                )?;
+                if block == 0 && stage > 0 {
+                    self.trunk_conv(
+                        &format!("{key}.downsample.0"),
+                        &format!("{key}.downsample.1"),
+                        &format!("{engine}.downsample.0"),
+                        &format!("{engine}.downsample.1"),
+                        [out, block_in, 1, 1],
+                    )?;
+                }
+            }
+            in_channels = out;
+        }
+        let feature_dim = self.config.feature_dim as usize;
+        for level in 0..5 {
+            let channels = self.config.pyramid_channels(level);
+            self.conv(
+                &format!("obs_encoder.proj.{level}"),
+                &format!("proj.{level}"),
+                feature_dim,
+                channels,
+                &[3, 3],
+            )?;
+        }
+        Ok(())
+    }
+
+    /// The diffusion step encoder at timestep `t`, in f64.
+    fn time_embedding(&self, t: f64) -> Result<Vec<f64>> {
+        let e = self.config.diffusion_step_embed_dim as usize;
+        let half = e / 2;
+        let step = (10000f64).ln() / (half as f64 - 1.0);
+        let mut sinusoid = vec![0.0; e];
+        for i in 0..half {
+            let angle = t * (-(i as f64) * step).exp();
+            sinusoid[i] = angle.sin();
+            sinusoid[half + i] = angle.cos();
+        }
+        let linear = |key: &str, input: &[f64], out: usize| -> Result<Vec<f64>> {
+            let weight = self.get(
+                &format!("model.diffusion_step_encoder.{key}.weight"),
+                &[out, input.len()],
+            )?;
+            let bias = self.get(&format!("model.diffusion_step_encoder.{key}.bias"), &[out])?;
+            Ok((0..out)
+                .map(|o| {
+                    bias[o] as f64
+                        + weight[o * input.len()..][..input.len()]
+                            .iter()
+                            .zip(input)
+                            .map(|(&w, &x)| w as f64 * x)
+                            .sum::<f64>()
+                })
+                .collect())
+        };
+        let hidden: Vec<f64> = linear("1", &sinusoid, 4 * e)?
+            .into_iter()
+            .map(mish)
+            .collect();
+        linear("3", &hidden, e)
+    }
+
+    fn residual_block(
+        &mut self,
+        key: &str,
+        engine: &str,
+        inputs: usize,
+        out: usize,
+        activated_embeddings: &[Vec<f64>],
+    ) -> Result<()> {
+        let kernel = self.config.kernel_size as usize;
+        self.conv(
+            &format!("{key}.blocks.0.block.0"),
+            &format!("{engine}.conv0"),
+            out,
+            inputs,
+            &[kernel],
+        )?;
+        self.copy(
+            &format!("{key}.blocks.0.block.1.weight"),
+            format!("{engine}.norm0.weight"),
+            out,
+        )?;
+        self.copy(
+            &format!("{key}.blocks.0.block.1.bias"),
+            format!("{engine}.norm0.bias"),
+            out,
+        )?;
+        self.conv(
+            &format!("{key}.blocks.1.block.0"),
+            &format!("{engine}.conv1"),
+            out,
+            out,
+            &[kernel],
+        )?;
+        self.copy(
+            &format!("{key}.blocks.1.block.1.weight"),
+            format!("{engine}.norm1.weight"),
+            out,
+        )?;
+        self.copy(
+            &format!("{key}.blocks.1.block.1.bias"),
+            format!("{engine}.norm1.bias"),
+            out,
+        )?;
+
+        let embed = self.config.diffusion_step_embed_dim as usize;
+        let global = self.config.global_cond_dim();
+        let cond = embed + global;
+        let weight = self
+            .get(&format!("{key}.cond_encoder.1.weight"), &[2 * out, cond])?
+            .to_vec();
+        let bias = self
+            .get(&format!("{key}.cond_encoder.1.bias"), &[2 * out])?
+            .to_vec();
+        let global_part: Vec<f32> = weight
+            .chunks_exact(cond)
+            .flat_map(|row| row[embed..].iter().copied())
+            .collect();
+        let mut table = Vec::with_capacity(activated_embeddings.len() * 2 * out);
+        for embedding in activated_embeddings {
+            for (row, &b) in weight.chunks_exact(cond).zip(&bias) {
+                let time_term: f64 = row[..embed]
+                    .iter()
+                    .zip(embedding)
+                    .map(|(&w, &x)| w as f64 * x)
+                    .sum();
+                table.push((b as f64 + time_term) as f32);
+            }
+        }
+        self.put(format!("{engine}.film.weight"), global_part);
+        self.put(format!("{engine}.film.table"), table);
+        if inputs != out {
+            self.conv(
+                &format!("{key}.residual_conv"),
+                &format!("{engine}.residual"),
+                out,
+                inputs,
+                &[1],
+            )?;
+        }
+        Ok(())
+    }
+
+    fn denoiser(&mut self, timesteps: &[u32]) -> Result<()> {
+        let activated: Vec<Vec<f64>> = timesteps
+            .iter()
+            .map(|&t| {
+                Ok(self
+                    .time_embedding(t as f64)?
+                    .into_iter()
+                    .map(mish)
+                    .collect())
+            })
+            .collect::<Result<_>>()?;
+        let dims = self.config.down_dims.map(|d| d as usize);
+        let mut level_in = self.config.action_dim as usize;
+        for (level, &width) in dims.iter().enumerate() {
+            let key = format!("model.down_modules.{level}");
+            let engine = format!("unet.down.{level}");
+            self.residual_block(
+                &format!("{key}.0"),
+                &format!("{engine}.0"),
+                level_in,
+                width,
+                &activated,
+            )?;
+            self.residual_block(
+                &format!("{key}.1"),
+                &format!("{engine}.1"),
+                width,
+                width,
+                &activated,
+            )?;
+            if level + 1 < UNET_LEVELS {
+                self.conv(
+                    &format!("{key}.2.conv"),
+                    &format!("{engine}.downsample"),
+                    width,
+                    width,
+                    &[3],
+                )?;
+            }
+            level_in = width;
+        }
+        for index in 0..2 {
+            let deepest = dims[UNET_LEVELS - 1];
+            self.residual_block(
+                &format!("model.mid_modules.{index}"),
+                &format!("unet.mid.{index}"),
+                deepest,
+                deepest,
+                &activated,
+            )?;
+        }
+        for index in 0..UNET_LEVELS - 1 {
+            let level = UNET_LEVELS - 2 - index;
+            let key = format!("model.up_modules.{index}");
+            let engine = format!("unet.up.{index}");
+            self.residual_block(
+                &format!("{key}.0"),
+                &format!("{engine}.0"),
+                2 * dims[level + 1],
+                dims[level],
+                &activated,
+            )?;
+            self.residual_block(
+                &format!("{key}.1"),
+                &format!("{engine}.1"),
+                dims[level],
+                dims[level],
+                &activated,
+            )?;
+            // ConvTranspose1d stores [in, out, k]: pack to [k, in, out].
+            let channels = dims[level];
+            let weight = self.get(&format!("{key}.2.conv.weight"), &[channels, channels, 4])?;
+            let mut packed = vec![0.0; weight.len()];
+            for i in 0..channels {
+                for o in 0..channels {
+                    for tap in 0..4 {
+                        packed[(tap * channels + i) * channels + o] =
+                            weight[(i * channels + o) * 4 + tap];
+                    }
+                }
+            }
+            self.put(format!("{engine}.upsample.weight"), packed);
+            self.copy(
+                &format!("{key}.2.conv.bias"),
+                format!("{engine}.upsample.bias"),
+                channels,
+            )?;
+        }
+        let kernel = self.config.kernel_size as usize;
+        self.conv(
+            "model.final_conv.0.block.0",
+            "unet.final.conv",
+            dims[0],
+            dims[0],
+            &[kernel],
+        )?;
+        self.copy(
+            "model.final_conv.0.block.1.weight",
+            "unet.final.norm.weight".into(),
+            dims[0],
+        )?;
+        self.copy(
+            "model.final_conv.0.block.1.bias",
+            "unet.final.norm.bias".into(),
+            dims[0],
+        )?;
+        self.conv(
+            "model.final_conv.1",
+            "unet.final.projection",
+            self.config.action_dim as usize,
+            dims[0],
+            &[1],
+        )?;
+        Ok(())
+    }
+
+    fn normalizer(&mut self) -> Result<()> {
+        let action_dim = self.config.action_dim as usize;
+        let state_dim = self.config.state_dim as usize;
+        let params = "normalizer.params_dict";
+        self.copy(
+            &format!("{params}.action.scale"),
+            "normalizer.action.scale".into(),
+            action_dim,
+        )?;
+        self.copy(
+            &format!("{params}.action.offset"),
+            "normalizer.action.offset".into(),
+            action_dim,
+        )?;
+        self.copy(
+            &format!("{params}.agent_pos.scale"),
+            "normalizer.state.scale".into(),
+            state_dim,
+        )?;
+        self.copy(
+            &format!("{params}.agent_pos.offset"),
+            "normalizer.state.offset".into(),
+            state_dim,
+        )?;
+        for (name, values) in &self.out {
+            if name.ends_with(".scale")
+                && name.starts_with("normalizer.")
+                && values.iter().any(|&v| v == 0.0 || !v.is_finite())
+            {
+                bail!(
+                    "`{name}` has a zero or non-finite entry: the actions could not be unnormalized"
+                );
+            }
+        }
+        Ok(())
+    }
+}
+
+/// DDIM inference timesteps ("leading" spacing, steps_offset 0), first to last.
+pub fn inference_timesteps(config: &ModelConfig) -> Vec<u32> {
+    let ratio = config.num_train_timesteps / config.num_inference_steps;
+    (0..config.num_inference_steps)
+        .rev()
+        .map(|i| i * ratio)
+        .collect()
+}
+
+/// diffusers' `alphas_cumprod` for `squaredcos_cap_v2`: betas in f64 stored as f32, the
+/// running product accumulated in f64 and stored as f32 at each step (as torch.cumprod does).
+pub fn alphas_cumprod(config: &ModelConfig) -> Vec<f32> {
+    let steps = config.num_train_timesteps as usize;
+    let alpha_bar = |x: f64| {
+        ((x + 0.008) / 1.008 * std::f64::consts::FRAC_PI_2)
+            .cos()
+            .powi(2)
+    };
+    let mut product = 1.0f64;
+    (0..steps)
+        .map(|i| {
+            let beta = (1.0
+                - alpha_bar((i + 1) as f64 / steps as f64) / alpha_bar(i as f64 / steps as f64))
+            .min(0.999);
+            let alpha = 1.0f32 - beta as f32;
+            product *= alpha as f64;
+            product as f32
+        })
+        .collect()
+}
+
+/// `[steps, 4]`: sqrt(a_t), sqrt(1 - a_t), sqrt(a_prev), sqrt(1 - a_prev).
+pub fn ddim_table(config: &ModelConfig) -> Vec<f32> {
+    let cumulative = alphas_cumprod(config);
+    let ratio = (config.num_train_timesteps / config.num_inference_steps) as i64;
+    let mut table = Vec::new();
+    for t in inference_timesteps(config) {
+        let alpha = cumulative[t as usize] as f64;
+        let previous = t as i64 - ratio;
+        let alpha_prev = if previous >= 0 {
+            cumulative[previous as usize] as f64
+        } else {
+            1.0
+        };
+        // 1 - a is formed in f32 first, as diffusers does.
+        let one_minus = |a: f64| (1.0f32 - a as f32) as f64;
+        table.extend(
+            [
+                alpha.sqrt(),
+                one_minus(alpha).sqrt(),
+                alpha_prev.sqrt(),
+                one_minus(alpha_prev).sqrt(),
+            ]
+            .map(|v| v as f32),
+        );
+    }
+    table
+}
+
+/// Every engine tensor for `config`, from a PyTorch state dict.
+pub fn lower(config: &ModelConfig, state: &impl StateDictLookup) -> Result<Lowered> {
+    config
+        .validate()
+        .map_err(|error| anyhow::anyhow!("config: {error}"))?;
+    let mut lowering = Lowering {
+        state,
+        config: *config,
+        out: Lowered::new(),
+    };
+    lowering.backbone()?;
+    lowering.denoiser(&inference_timesteps(config))?;
+    lowering.normalizer()?;
+    lowering
+        .out
+        .insert("scheduler.ddim".into(), ddim_table(config));
+    Ok(lowering.out)
+}
+
+impl StateDictLookup for crate::state_dict::StateDict {
+    fn tensor(&self, key: &str) -> Option<TensorRef<'_>> {
+        self.get(key).map(|tensor| TensorRef {
+            shape: &tensor.shape,
+            data: &tensor.data,
+        })
+    }
+}
+
+/// Lowers a state dict and writes the weights file bytes.
+pub fn weights_file(config: &ModelConfig, state: &impl StateDictLookup) -> Result<Vec<u8>> {
+    crate::writer::write_weights_file(config, &lower(config, state)?)
+}
