@@ -1,1 +1,209 @@
-//! Shared helpers for the golden tests.
+//! Shared helpers for the golden tests: reading the fixtures the PyTorch reference wrote
+//! (tests/fixtures, format in docs/FIXTURES.md) and running the engine on them.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use safetensors::{Dtype, SafeTensors};
+use scdp_engine::{Camera, Model, ModelConfig, Noise, Observer, Policy};
+use weights_tool::writer::AlignedBytes;
+
+/// The repository's `tests/` folder.
+pub fn tests_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).to_path_buf()
+}
+
+/// A tensor of a fixture, widened to f64 (u8 images are kept apart).
+#[derive(Clone, Debug)]
+pub struct Array {
+    pub shape: Vec<usize>,
+    pub values: Vec<f64>,
+}
+
+/// One golden case: metadata, inputs and reference outputs.
+pub struct Fixture {
+    pub path: PathBuf,
+    pub config: ModelConfig,
+    pub seed: u64,
+    pub weights_sha256: String,
+    pub images: Vec<u8>,
+    pub arrays: HashMap<String, Array>,
+}
+
+impl Fixture {
+    pub fn load(path: &Path) -> Result<Self> {
+        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+        let (_, metadata) = SafeTensors::read_metadata(&bytes)?;
+        let metadata = metadata.metadata().clone().unwrap_or_default();
+        let field = |name: &str| {
+            metadata
+                .get(name)
+                .cloned()
+                .with_context(|| format!("{}: metadata lacks `{name}`", path.display()))
+        };
+        let config = weights_tool::config::parse_config(&field("config")?)
+            .map_err(|error| anyhow::anyhow!("{}: config: {error}", path.display()))?;
+        let seed = field("seed")?.parse()?;
+        let weights_sha256 = field("weights_sha256")?;
+        let tensors = SafeTensors::deserialize(&bytes)?;
+        let mut images = Vec::new();
+        let mut arrays = HashMap::new();
+        for (name, view) in tensors.tensors() {
+            let data = view.data();
+            let values: Vec<f64> = match view.dtype() {
+                Dtype::U8 => {
+                    if name == "images" {
+                        images = data.to_vec();
+                    }
+                    data.iter().map(|&b| b as f64).collect()
+                }
+                Dtype::F32 => data
+                    .chunks_exact(4)
+                    .map(|c| f32::from_le_bytes(c.try_into().unwrap()) as f64)
+                    .collect(),
+                Dtype::F64 => data
+                    .chunks_exact(8)
+                    .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+                    .collect(),
+                other => bail!("{}: `{name}` has dtype {other:?}", path.display()),
+            };
+            arrays.insert(
+                name,
+                Array {
+                    shape: view.shape().to_vec(),
+                    values,
+                },
+            );
+        }
+        Ok(Fixture {
+            path: path.to_path_buf(),
+            config,
+            seed,
+            weights_sha256,
+            images,
+            arrays,
+        })
+    }
+
+    pub fn array(&self, name: &str) -> &Array {
+        self.arrays
+            .get(name)
+            .unwrap_or_else(|| panic!("{}: no tensor `{name}`", self.path.display()))
+    }
+
+    pub fn f32s(&self, name: &str) -> Vec<f32> {
+        self.array(name).values.iter().map(|&v| v as f32).collect()
+    }
+
+    pub fn camera(&self) -> Result<Camera> {
+        let k = self.f32s("camera_k");
+        let t = self.f32s("camera_t");
+        let intrinsics = [[k[0], k[1], k[2]], [k[3], k[4], k[5]], [k[6], k[7], k[8]]];
+        let mut extrinsics = [[0.0; 4]; 4];
+        for (row, chunk) in extrinsics.iter_mut().zip(t.chunks_exact(4)) {
+            row.copy_from_slice(chunk);
+        }
+        Ok(Camera::new(&intrinsics, &extrinsics)?)
+    }
+}
+
+/// Every golden fixture, sorted, optionally only those of one config folder.
+pub fn golden_fixtures() -> Vec<PathBuf> {
+    let mut paths: Vec<PathBuf> = glob_safetensors(&tests_dir().join("fixtures/golden"));
+    paths.sort();
+    paths
+}
+
+fn glob_safetensors(dir: &Path) -> Vec<PathBuf> {
+    let mut found = Vec::new();
+    if let Ok(entries) = std::fs::read_dir(dir) {
+        for entry in entries.flatten() {
+            let path = entry.path();
+            if path.is_dir() {
+                found.extend(glob_safetensors(&path));
+            } else if path.extension().is_some_and(|e| e == "safetensors") {
+                found.push(path);
+            }
+        }
+    }
+    found
+}
+
+/// Seeded synthetic weights, converted by the weights tool exactly as `convert` does.
+pub fn synthetic_weights_file(config: &ModelConfig, seed: u64) -> Result<AlignedBytes> {
+    let state = weights_tool::synth::synth_state_dict(config, seed);
+    let bytes = weights_tool::lowering::weights_file(config, &state)?;
+    Ok(weights_tool::writer::aligned_copy(&bytes))
+}
+
+/// Everything an inference showed its observer, step by step.
+#[derive(Default, Debug)]
+pub struct Recorded {
+    pub anchors_uv: Vec<Vec<f32>>,
+    pub global_cond: Vec<Vec<f32>>,
+    pub eps: Vec<Vec<f32>>,
+    pub sample: Vec<Vec<f32>>,
+}
+
+impl Observer for Recorded {
+    fn step(
+        &mut self,
+        _step: usize,
+        anchors_uv: &[f32],
+        global_cond: &[f32],
+        eps: &[f32],
+        sample: &[f32],
+    ) {
+        self.anchors_uv.push(anchors_uv.to_vec());
+        self.global_cond.push(global_cond.to_vec());
+        self.eps.push(eps.to_vec());
+        self.sample.push(sample.to_vec());
+    }
+}
+
+/// The engine's results on a fixture's inputs.
+pub struct EngineRun {
+    pub recorded: Recorded,
+    pub action_pred: Vec<f32>,
+    pub action: Vec<f32>,
+    /// `[frame][level]` -> the projected map `[H, W, d]`.
+    pub feature_maps: Vec<Vec<Vec<f32>>>,
+}
+
+/// Runs a weights file on a fixture's inputs: frames pushed oldest first, the given noise.
+pub fn run_engine(weights: &[u8], fixture: &Fixture) -> Result<EngineRun> {
+    let model = Model::from_bytes(weights)?;
+    model.expect_config(&fixture.config)?;
+    let config = fixture.config;
+    let plan = scdp_engine::ArenaPlan::new(&config);
+    let mut arena = AlignedBytes::zeroed(plan.arena_bytes);
+    let mut policy = Policy::new(&model, arena.as_mut_slice())?;
+    policy.set_camera(fixture.camera()?);
+    let frames = config.n_obs_steps as usize;
+    let frame_bytes = fixture.images.len() / frames;
+    let state = fixture.f32s("state");
+    let state_dim = config.state_dim as usize;
+    for frame in 0..frames {
+        policy.push_observation(
+            &fixture.images[frame * frame_bytes..][..frame_bytes],
+            &state[frame * state_dim..][..state_dim],
+        )?;
+    }
+    let feature_maps = (0..frames)
+        .map(|frame| {
+            (0..5)
+                .map(|level| policy.feature_map(frame, level).unwrap().to_vec())
+                .collect()
+        })
+        .collect();
+    let noise = fixture.f32s("noise");
+    let mut recorded = Recorded::default();
+    let actions = policy.infer_observed(Noise::Given(&noise), &mut recorded)?;
+    Ok(EngineRun {
+        action_pred: actions.action_pred().to_vec(),
+        action: actions.action().to_vec(),
+        recorded,
+        feature_maps,
+    })
+}
