@@ -6,11 +6,13 @@
 
 pub mod checkpoint;
 pub mod config;
+pub mod inspect;
 pub mod keys;
 pub mod lower;
 pub mod lowering;
 pub mod quant;
 pub mod remap;
+pub mod run;
 pub mod safetensors_io;
 pub mod state_dict;
 pub mod synth;

@@ -1,5 +1,5 @@
-//! `weights-tool`: makes synthetic SCDP checkpoints and converts checkpoints into the
-//! engine's weights file.
+//! `weights-tool`: converts SCDP checkpoints into the engine's weights file, inspects and
+//! runs weights files, and makes synthetic checkpoints.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -31,6 +31,41 @@ enum Command {
     /// Convert a checkpoint (training checkpoint, torch.save state dict or .safetensors) into
     /// the engine's weights file.
     Convert(ConvertArgs),
+    /// Show a weights file's config, storage, arena plan and tensor table.
+    Inspect(InspectArgs),
+    /// Run the engine on a run file (SPEC section 8): actions, anchors, optional picture and
+    /// latency benchmark.
+    Run(RunArgs),
+}
+
+#[derive(clap::Args)]
+struct InspectArgs {
+    /// Weights file written by `convert`.
+    #[arg(value_name = "MODEL.scdp")]
+    model: PathBuf,
+}
+
+#[derive(clap::Args)]
+struct RunArgs {
+    /// Weights file written by `convert`.
+    #[arg(value_name = "MODEL.scdp")]
+    model: PathBuf,
+    /// Inputs: `images` u8 [To,H,W,3], `state` f32 [To,state_dim], `camera_k` f32 [3,3],
+    /// `camera_t` f32 [4,4], optional `noise` f32 [horizon,action_dim].
+    #[arg(long, value_name = "IN.safetensors")]
+    inputs: PathBuf,
+    /// Outputs: `action_pred`, `action`, `anchors_uv` (NaN where invalid).
+    #[arg(short, long, value_name = "OUT.safetensors")]
+    output: Option<PathBuf>,
+    /// Seed of the engine's noise generator, used when the inputs hold no `noise`.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Draw the newest frame with every denoising step's anchors (colour by step, blue to red).
+    #[arg(long, value_name = "OUT.png")]
+    viz: Option<PathBuf>,
+    /// Run the inference N more times after a warm-up and print median and p99 per stage.
+    #[arg(long, value_name = "N")]
+    bench: Option<usize>,
 }
 
 #[derive(clap::Args)]
@@ -88,6 +123,8 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Synth(args) => synth(&args),
         Command::Convert(args) => convert(&args),
+        Command::Inspect(args) => inspect(&args),
+        Command::Run(args) => run(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -148,11 +185,96 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
     let bytes = bytes.with_context(|| format!("converting {}", args.checkpoint.display()))?;
     std::fs::write(&args.output, &bytes)
         .with_context(|| format!("{}: cannot write", args.output.display()))?;
+    let plan = scdp_engine::ArenaPlan::new(&config);
+    println!("wrote {}", args.output.display());
+    println!("  weights used   {}", state_dict.source);
+    println!("  storage        {quant}");
+    println!("  parameters     {}", state_dict.numel());
     println!(
-        "wrote {} ({} bytes, {quant})",
-        args.output.display(),
-        bytes.len()
+        "  file           {} bytes ({:.1} MiB)",
+        bytes.len(),
+        bytes.len() as f64 / 1048576.0
     );
+    println!(
+        "  arena          {} bytes ({:.1} MiB), {:.1} MiB without buffer reuse",
+        plan.arena_bytes,
+        plan.arena_bytes as f64 / 1048576.0,
+        plan.without_reuse_bytes as f64 / 1048576.0
+    );
+    println!(
+        "  model          {}x{} frames x{}, horizon {}, {} DDIM steps",
+        config.image_width,
+        config.image_height,
+        config.n_obs_steps,
+        config.horizon,
+        config.num_inference_steps
+    );
+    Ok(())
+}
+
+fn read_file(path: &Path) -> anyhow::Result<Vec<u8>> {
+    std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))
+}
+
+fn inspect(args: &InspectArgs) -> anyhow::Result<()> {
+    let bytes = read_file(&args.model)?;
+    let report =
+        weights_tool::inspect::report(&bytes).with_context(|| args.model.display().to_string())?;
+    print!("{report}");
+    Ok(())
+}
+
+fn milliseconds(duration: Duration) -> f64 {
+    duration.as_secs_f64() * 1e3
+}
+
+fn run(args: &RunArgs) -> anyhow::Result<()> {
+    use weights_tool::run::{RunInputs, Runner, bench, draw_anchors, write_outputs};
+    let bytes = read_file(&args.model)?;
+    let mut runner = Runner::new(&bytes).with_context(|| args.model.display().to_string())?;
+    let config =
+        *scdp_engine::Model::from_bytes(weights_tool::writer::aligned_copy(&bytes).as_slice())
+            .map_err(|error| anyhow::anyhow!("{}: {error}", args.model.display()))?
+            .config();
+    let inputs = RunInputs::load(&args.inputs, &config)?;
+    let (outputs, times) = runner.run(&inputs, args.seed)?;
+    let action_dim = config.action_dim as usize;
+    println!(
+        "action ({} steps x {action_dim}), encode {:.1} ms for {} frames, denoise {:.1} ms:",
+        config.n_action_steps,
+        milliseconds(times.encode_frames),
+        config.n_obs_steps,
+        milliseconds(times.denoise)
+    );
+    for row in outputs.action.chunks_exact(action_dim) {
+        let values: Vec<String> = row.iter().map(|v| format!("{v:+.5}")).collect();
+        println!("  {}", values.join(" "));
+    }
+    if let Some(path) = &args.output {
+        write_outputs(path, &config, &outputs)?;
+        println!("wrote {}", path.display());
+    }
+    if let Some(path) = &args.viz {
+        let drawn = draw_anchors(&config, &inputs, &outputs.anchors_uv, path)?;
+        let total = outputs.anchors_uv.len() / 2;
+        println!(
+            "wrote {} ({drawn} of {total} anchors in front of the camera)",
+            path.display()
+        );
+    }
+    if let Some(iterations) = args.bench {
+        let table = bench(&mut runner, &inputs, iterations)?;
+        println!("{iterations} runs after a warm-up, one thread:");
+        println!("  {:<36} {:>10} {:>10}", "stage", "median ms", "p99 ms");
+        for (stage, (median, p99)) in table {
+            println!(
+                "  {:<36} {:>10.2} {:>10.2}",
+                &stage[2..],
+                milliseconds(median),
+                milliseconds(p99)
+            );
+        }
+    }
     Ok(())
 }
 

@@ -1,0 +1,82 @@
+//! `weights-tool inspect`: what a weights file holds and what running it will need.
+
+use std::fmt::Write as _;
+
+use anyhow::Result;
+use scdp_engine::format::{DType, Quant};
+use scdp_engine::{ArenaPlan, Model};
+
+use crate::config_to_toml;
+
+fn mebibytes(bytes: usize) -> String {
+    format!("{:.2} MiB", bytes as f64 / (1024.0 * 1024.0))
+}
+
+/// A one-screen report: config, storage, arena plan, then the tensor table.
+pub fn report(bytes: &[u8]) -> Result<String> {
+    let aligned = crate::writer::aligned_copy(bytes);
+    let model =
+        Model::from_bytes(aligned.as_slice()).map_err(|error| anyhow::anyhow!("{error}"))?;
+    let file = model.file();
+    let config = model.config();
+    let plan = ArenaPlan::new(config);
+    let mut out = String::new();
+    writeln!(
+        out,
+        "format version {}, checksum ok, {} tensors, {} ({} bytes)",
+        scdp_engine::format::VERSION,
+        file.tensor_count(),
+        mebibytes(file.len()),
+        file.len()
+    )?;
+    writeln!(
+        out,
+        "weights: {}",
+        match file.quant() {
+            Quant::F32 => "f32",
+            Quant::Int8 => "int8",
+        }
+    )?;
+    writeln!(
+        out,
+        "arena: {} ({} bytes); without buffer reuse {} ({:.1}x)",
+        mebibytes(plan.arena_bytes),
+        plan.arena_bytes,
+        mebibytes(plan.without_reuse_bytes),
+        plan.without_reuse_bytes as f64 / plan.arena_bytes as f64
+    )?;
+    writeln!(
+        out,
+        "  feature maps {} (all frames), trunk/denoiser scratch {}",
+        mebibytes(plan.features * 4),
+        mebibytes(plan.scratch * 4)
+    )?;
+    writeln!(out, "\n[config]\n{}", config_to_toml(config))?;
+    writeln!(
+        out,
+        "{:<48} {:>5} {:<22} {:>12} {:>12}",
+        "tensor", "dtype", "shape", "offset", "bytes"
+    )?;
+    let mut parameters = 0usize;
+    for index in 0..file.tensor_count() {
+        let entry = file
+            .entry(index)
+            .map_err(|error| anyhow::anyhow!("{error}"))?;
+        parameters += entry.element_count();
+        let dtype = match entry.dtype {
+            DType::F32 => "f32",
+            DType::I8 => "i8",
+        };
+        writeln!(
+            out,
+            "{:<48} {:>5} {:<22} {:>12} {:>12}",
+            entry.name,
+            dtype,
+            format!("{:?}", entry.dims()),
+            entry.offset,
+            entry.byte_len
+        )?;
+    }
+    writeln!(out, "{parameters} stored values")?;
+    Ok(out)
+}

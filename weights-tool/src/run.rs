@@ -1,0 +1,370 @@
+//! `weights-tool run`: the engine on the run files of SPEC section 8, with an optional
+//! picture of where the policy looked and an optional latency benchmark.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, ensure};
+use safetensors::{Dtype, SafeTensors};
+use scdp_engine::{ArenaPlan, Camera, Model, ModelConfig, Noise, Policy};
+
+use crate::writer::AlignedBytes;
+
+/// The inputs of one inference (SPEC section 8).
+#[derive(Clone, Debug)]
+pub struct RunInputs {
+    /// `[To, H, W, 3]` RGB, oldest first.
+    pub images: Vec<u8>,
+    /// `[To, state_dim]`.
+    pub state: Vec<f32>,
+    /// `[horizon, action_dim]`; `None` to draw it from the engine's generator.
+    pub noise: Option<Vec<f32>>,
+    pub intrinsics: [[f32; 3]; 3],
+    pub extrinsics: [[f32; 4]; 4],
+}
+
+fn tensor_f32(
+    tensors: &SafeTensors<'_>,
+    name: &str,
+    shape: &[usize],
+    path: &Path,
+) -> Result<Vec<f32>> {
+    let view = tensors
+        .tensor(name)
+        .with_context(|| format!("{}: no tensor `{name}`", path.display()))?;
+    ensure!(
+        view.dtype() == Dtype::F32,
+        "{}: `{name}` is {:?}, expected F32",
+        path.display(),
+        view.dtype()
+    );
+    ensure!(
+        view.shape() == shape,
+        "{}: `{name}` has shape {:?}, expected {shape:?}",
+        path.display(),
+        view.shape()
+    );
+    Ok(view
+        .data()
+        .chunks_exact(4)
+        .map(|bytes| f32::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3]]))
+        .collect())
+}
+
+impl RunInputs {
+    /// Reads and checks a run file against `config`.
+    pub fn load(path: &Path, config: &ModelConfig) -> Result<Self> {
+        let bytes =
+            std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+        let tensors = SafeTensors::deserialize(&bytes)
+            .with_context(|| format!("{}: not a safetensors file", path.display()))?;
+        let frames = config.n_obs_steps as usize;
+        let (height, width) = (config.image_height as usize, config.image_width as usize);
+        let images = tensors
+            .tensor("images")
+            .with_context(|| format!("{}: no tensor `images`", path.display()))?;
+        ensure!(
+            images.dtype() == Dtype::U8 && images.shape() == [frames, height, width, 3],
+            "{}: `images` is {:?} {:?}, expected U8 {:?}",
+            path.display(),
+            images.dtype(),
+            images.shape(),
+            [frames, height, width, 3]
+        );
+        let state = tensor_f32(
+            &tensors,
+            "state",
+            &[frames, config.state_dim as usize],
+            path,
+        )?;
+        let sequence = [config.horizon as usize, config.action_dim as usize];
+        let noise = match tensors.tensor("noise") {
+            Ok(_) => Some(tensor_f32(&tensors, "noise", &sequence, path)?),
+            Err(_) => None,
+        };
+        let k = tensor_f32(&tensors, "camera_k", &[3, 3], path)?;
+        let t = tensor_f32(&tensors, "camera_t", &[4, 4], path)?;
+        let mut intrinsics = [[0.0; 3]; 3];
+        for (row, values) in intrinsics.iter_mut().zip(k.chunks_exact(3)) {
+            row.copy_from_slice(values);
+        }
+        let mut extrinsics = [[0.0; 4]; 4];
+        for (row, values) in extrinsics.iter_mut().zip(t.chunks_exact(4)) {
+            row.copy_from_slice(values);
+        }
+        Ok(RunInputs {
+            images: images.data().to_vec(),
+            state,
+            noise,
+            intrinsics,
+            extrinsics,
+        })
+    }
+}
+
+/// What one inference produced.
+#[derive(Clone, Debug)]
+pub struct RunOutputs {
+    pub action_pred: Vec<f32>,
+    pub action: Vec<f32>,
+    /// `[steps, s + 1, 2]`, NaN where invalid.
+    pub anchors_uv: Vec<f32>,
+}
+
+/// Wall-clock time of each stage of one inference.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StageTimes {
+    /// Preprocessing, trunk and projections of each pushed frame, summed.
+    pub encode_frames: Duration,
+    /// The same for the newest frame only (the streaming latency's encoding part).
+    pub encode_newest: Duration,
+    /// The whole denoising loop (anchors, context, U-Net, DDIM for every step).
+    pub denoise: Duration,
+}
+
+/// A loaded model and an arena for it.
+pub struct Runner {
+    weights: AlignedBytes,
+    arena: AlignedBytes,
+}
+
+impl Runner {
+    pub fn new(weights_file: &[u8]) -> Result<Self> {
+        let weights = crate::writer::aligned_copy(weights_file);
+        let model =
+            Model::from_bytes(weights.as_slice()).map_err(|error| anyhow::anyhow!("{error}"))?;
+        let arena = AlignedBytes::zeroed(ArenaPlan::new(model.config()).arena_bytes);
+        Ok(Runner { weights, arena })
+    }
+
+    /// One inference: pushes every frame (oldest first), then denoises.
+    pub fn run(&mut self, inputs: &RunInputs, seed: u64) -> Result<(RunOutputs, StageTimes)> {
+        let model = Model::from_bytes(self.weights.as_slice())
+            .map_err(|error| anyhow::anyhow!("{error}"))?;
+        let config = *model.config();
+        let mut policy = Policy::new(&model, self.arena.as_mut_slice())
+            .map_err(|error| anyhow::anyhow!("{error}"))?;
+        let camera = Camera::new(&inputs.intrinsics, &inputs.extrinsics)
+            .map_err(|error| anyhow::anyhow!("camera: {error}"))?;
+        policy.set_camera(camera);
+        let frames = config.n_obs_steps as usize;
+        let frame_bytes = inputs.images.len() / frames;
+        let state_dim = config.state_dim as usize;
+        let mut times = StageTimes::default();
+        for frame in 0..frames {
+            let start = Instant::now();
+            policy
+                .push_observation(
+                    &inputs.images[frame * frame_bytes..][..frame_bytes],
+                    &inputs.state[frame * state_dim..][..state_dim],
+                )
+                .map_err(|error| anyhow::anyhow!("frame {frame}: {error}"))?;
+            let elapsed = start.elapsed();
+            times.encode_frames += elapsed;
+            times.encode_newest = elapsed;
+        }
+        let noise = match &inputs.noise {
+            Some(values) => Noise::Given(values),
+            None => Noise::Seed(seed),
+        };
+        let start = Instant::now();
+        let actions = policy
+            .infer(noise)
+            .map_err(|error| anyhow::anyhow!("inference: {error}"))?;
+        times.denoise = start.elapsed();
+        Ok((
+            RunOutputs {
+                action_pred: actions.action_pred().to_vec(),
+                action: actions.action().to_vec(),
+                anchors_uv: actions.anchors_uv().to_vec(),
+            },
+            times,
+        ))
+    }
+}
+
+/// Writes `action_pred`, `action` and `anchors_uv` as f32 safetensors.
+pub fn write_outputs(path: &Path, config: &ModelConfig, outputs: &RunOutputs) -> Result<()> {
+    let as_bytes = |values: &[f32]| {
+        values
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect::<Vec<u8>>()
+    };
+    let action_dim = config.action_dim as usize;
+    let entries = [
+        (
+            "action_pred",
+            vec![config.horizon as usize, action_dim],
+            as_bytes(&outputs.action_pred),
+        ),
+        (
+            "action",
+            vec![config.n_action_steps as usize, action_dim],
+            as_bytes(&outputs.action),
+        ),
+        (
+            "anchors_uv",
+            vec![
+                config.num_inference_steps as usize,
+                config.anchor_count(),
+                2,
+            ],
+            as_bytes(&outputs.anchors_uv),
+        ),
+    ];
+    let views = entries
+        .iter()
+        .map(|(name, shape, data)| {
+            Ok((
+                *name,
+                safetensors::tensor::TensorView::new(Dtype::F32, shape.clone(), data)?,
+            ))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let metadata: Option<std::collections::HashMap<String, String>> = None;
+    safetensors::serialize_to_file(views, metadata, path)
+        .with_context(|| format!("{}: cannot write", path.display()))
+}
+
+/// Median and 99th percentile of a set of durations.
+pub fn percentiles(samples: &mut [Duration]) -> (Duration, Duration) {
+    samples.sort();
+    let at = |q: f64| samples[((samples.len() - 1) as f64 * q).round() as usize];
+    (at(0.5), at(0.99))
+}
+
+/// Per-stage latency over `iterations` runs after one warm-up run.
+pub fn bench(
+    runner: &mut Runner,
+    inputs: &RunInputs,
+    iterations: usize,
+) -> Result<BTreeMap<&'static str, (Duration, Duration)>> {
+    ensure!(iterations > 0, "--bench needs at least one iteration");
+    runner.run(inputs, 0)?;
+    let mut encode = Vec::new();
+    let mut denoise = Vec::new();
+    let mut total = Vec::new();
+    let mut streaming = Vec::new();
+    for _ in 0..iterations {
+        let (_, times) = runner.run(inputs, 0)?;
+        encode.push(times.encode_newest);
+        denoise.push(times.denoise);
+        total.push(times.encode_frames + times.denoise);
+        streaming.push(times.encode_newest + times.denoise);
+    }
+    Ok(BTreeMap::from([
+        ("1 encode one frame", percentiles(&mut encode)),
+        ("2 denoise (all steps)", percentiles(&mut denoise)),
+        ("3 end to end, all frames", percentiles(&mut total)),
+        (
+            "4 end to end, newest frame only",
+            percentiles(&mut streaming),
+        ),
+    ]))
+}
+
+/// Colour of denoising step `step` of `steps`: blue (noisiest) through green to red (final).
+fn step_colour(step: usize, steps: usize) -> [u8; 3] {
+    let t = if steps > 1 {
+        step as f32 / (steps - 1) as f32
+    } else {
+        1.0
+    };
+    let ramp = |x: f32| (x.clamp(0.0, 1.0) * 255.0) as u8;
+    [
+        ramp(2.0 * t - 1.0),
+        ramp(1.0 - (2.0 * t - 1.0).abs()),
+        ramp(1.0 - 2.0 * t),
+    ]
+}
+
+/// The newest frame, enlarged, with each step's anchors drawn as a polyline of dots
+/// (colour by step), the SCDP paper's "visualization of spatial conditioning". Returns how
+/// many anchors were in front of the camera (and so drawn, when inside the frame).
+pub fn draw_anchors(
+    config: &ModelConfig,
+    inputs: &RunInputs,
+    anchors_uv: &[f32],
+    path: &Path,
+) -> Result<usize> {
+    let (height, width) = (config.image_height as usize, config.image_width as usize);
+    let scale = (640 / width).max(1) as u32;
+    let frames = config.n_obs_steps as usize;
+    let newest = &inputs.images[(frames - 1) * height * width * 3..][..height * width * 3];
+    let mut picture =
+        image::RgbImage::from_fn(width as u32 * scale, height as u32 * scale, |x, y| {
+            let at = ((y / scale) as usize * width + (x / scale) as usize) * 3;
+            // Dim the frame so the anchors stand out.
+            image::Rgb([
+                newest[at] / 2 + 32,
+                newest[at + 1] / 2 + 32,
+                newest[at + 2] / 2 + 32,
+            ])
+        });
+    let steps = config.num_inference_steps as usize;
+    let points = config.anchor_count();
+    let to_canvas = |u: f32, v: f32| ((u + 0.5) * scale as f32, (v + 0.5) * scale as f32);
+    let plot = |picture: &mut image::RgbImage, x: f32, y: f32, colour: [u8; 3], radius: f32| {
+        let r = radius.ceil() as i64;
+        for dy in -r..=r {
+            for dx in -r..=r {
+                if (dx * dx + dy * dy) as f32 > radius * radius {
+                    continue;
+                }
+                let (px, py) = (x as i64 + dx, y as i64 + dy);
+                if px >= 0
+                    && py >= 0
+                    && (px as u32) < picture.width()
+                    && (py as u32) < picture.height()
+                {
+                    picture.put_pixel(px as u32, py as u32, image::Rgb(colour));
+                }
+            }
+        }
+    };
+    for step in 0..steps {
+        let colour = step_colour(step, steps);
+        let uv = &anchors_uv[step * points * 2..][..points * 2];
+        let valid: Vec<(f32, f32)> = uv
+            .chunks_exact(2)
+            .filter(|p| p[0].is_finite() && p[1].is_finite())
+            .map(|p| to_canvas(p[0], p[1]))
+            .collect();
+        for pair in valid.windows(2) {
+            let ((x0, y0), (x1, y1)) = (pair[0], pair[1]);
+            let length = ((x1 - x0).hypot(y1 - y0)).min(4.0 * picture.width() as f32);
+            let samples = length.ceil().max(1.0) as usize;
+            for i in 0..=samples {
+                let t = i as f32 / samples as f32;
+                plot(
+                    &mut picture,
+                    x0 + t * (x1 - x0),
+                    y0 + t * (y1 - y0),
+                    colour,
+                    0.8,
+                );
+            }
+        }
+        let radius = if step + 1 == steps { 4.0 } else { 2.5 };
+        for &(x, y) in &valid {
+            plot(&mut picture, x, y, colour, radius);
+        }
+    }
+    // Legend: a strip at the bottom going from the first step's colour to the last's.
+    let (canvas_width, canvas_height) = (picture.width(), picture.height());
+    for x in 0..canvas_width {
+        let step = (x as usize * steps / canvas_width as usize).min(steps - 1);
+        for y in canvas_height.saturating_sub(6)..canvas_height {
+            picture.put_pixel(x, y, image::Rgb(step_colour(step, steps)));
+        }
+    }
+    picture
+        .save(path)
+        .with_context(|| format!("{}: cannot write picture", path.display()))?;
+    Ok(anchors_uv
+        .chunks_exact(2)
+        .filter(|p| p[0].is_finite())
+        .count())
+}
