@@ -132,7 +132,7 @@ impl ModelConfig {
             BackboneNorm::Batch => 8,
         };
         if self.backbone_width == 0
-            || self.backbone_width % width_step != 0
+            || !self.backbone_width.is_multiple_of(width_step)
             || self.backbone_width > 256
         {
             return Err(ConfigError::BackboneWidth);
@@ -143,7 +143,7 @@ impl ModelConfig {
         if self.n_obs_steps == 0 || self.n_obs_steps > MAX_OBS_STEPS as u32 {
             return Err(ConfigError::ObsSteps);
         }
-        if self.horizon == 0 || self.horizon % 4 != 0 || self.horizon > 256 {
+        if self.horizon == 0 || !self.horizon.is_multiple_of(4) || self.horizon > 256 {
             return Err(ConfigError::HorizonNotMultipleOfFour);
         }
         if self.n_action_steps == 0 || self.n_obs_steps - 1 + self.n_action_steps > self.horizon {
@@ -181,22 +181,22 @@ impl ModelConfig {
         let mut level = 0;
         while level < UNET_LEVELS {
             let dim = self.down_dims[level];
-            if dim == 0 || dim > 4096 || dim % self.n_groups != 0 {
+            if dim == 0 || dim > 4096 || !dim.is_multiple_of(self.n_groups) {
                 return Err(ConfigError::DownDims);
             }
             level += 1;
         }
         // The head's GroupNorm has Diffusion Policy's default 8 groups whatever n_groups is.
-        if self.down_dims[0] % crate::denoiser::FINAL_BLOCK_GROUPS as u32 != 0 {
+        if !self.down_dims[0].is_multiple_of(crate::denoiser::FINAL_BLOCK_GROUPS as u32) {
             return Err(ConfigError::DownDims);
         }
         if self.diffusion_step_embed_dim < 4
-            || self.diffusion_step_embed_dim % 2 != 0
+            || !self.diffusion_step_embed_dim.is_multiple_of(2)
             || self.diffusion_step_embed_dim > 4096
         {
             return Err(ConfigError::StepEmbedDim);
         }
-        if self.kernel_size == 0 || self.kernel_size % 2 == 0 || self.kernel_size > 15 {
+        if self.kernel_size == 0 || self.kernel_size.is_multiple_of(2) || self.kernel_size > 15 {
             return Err(ConfigError::KernelSize);
         }
         if self.num_train_timesteps == 0 || self.num_train_timesteps > 10_000 {

@@ -224,7 +224,7 @@ impl<'w> WeightsFile<'w> {
     /// Validates everything about `bytes` that can be checked without knowing the model:
     /// header, checksum, config record and each table entry's bounds, alignment and overlap.
     pub fn parse(bytes: &'w [u8]) -> Result<Self, LoadError> {
-        if (bytes.as_ptr() as usize) % ALIGN != 0 {
+        if !(bytes.as_ptr() as usize).is_multiple_of(ALIGN) {
             return Err(LoadError::MisalignedBuffer);
         }
         if bytes.len() < HEADER_BYTES {
@@ -244,7 +244,7 @@ impl<'w> WeightsFile<'w> {
         if file_bytes > bytes.len() as u64 {
             return Err(LoadError::Truncated);
         }
-        if file_bytes < bytes.len() as u64 || file_bytes % ALIGN as u64 != 0 {
+        if file_bytes < bytes.len() as u64 || !file_bytes.is_multiple_of(ALIGN as u64) {
             return Err(LoadError::BadHeader);
         }
         let stored = u64_at(bytes, CHECKSUM_RANGE.start);

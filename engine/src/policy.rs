@@ -124,7 +124,7 @@ impl<'w, 'a> Policy<'w, 'a> {
         let arena = &mut arena[..plan.arena_bytes];
         let arena: &mut [f32] =
             bytemuck::try_cast_slice_mut(arena).map_err(|_| Error::MisalignedArena)?;
-        if (arena.as_ptr() as usize) % crate::format::ALIGN != 0 {
+        if !(arena.as_ptr() as usize).is_multiple_of(crate::format::ALIGN) {
             return Err(Error::MisalignedArena);
         }
         Ok(Policy {
