@@ -108,3 +108,279 @@ fn bad_config_names_the_file_and_the_keys() {
         "{stderr}"
     );
 }
+
+/// `action_pred` of a run output file.
+fn read_f32(path: &Path, name: &str) -> Vec<f64> {
+    let bytes = std::fs::read(path).unwrap();
+    let tensors = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let view = tensors.tensor(name).unwrap();
+    match view.dtype() {
+        safetensors::Dtype::F32 => view
+            .data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes(b.try_into().unwrap()) as f64)
+            .collect(),
+        safetensors::Dtype::F64 => view
+            .data()
+            .chunks_exact(8)
+            .map(|b| f64::from_le_bytes(b.try_into().unwrap()))
+            .collect(),
+        other => panic!("{name}: {other:?}"),
+    }
+}
+
+/// Max |found - expected| x action scale: the error in normalized action units, the unit of
+/// the engine's 2e-4 bound (docs/FIXTURES.md).
+fn normalized_error(found: &[f64], expected: &[f64], scale: &[f32]) -> f64 {
+    assert_eq!(found.len(), expected.len());
+    found
+        .iter()
+        .zip(expected)
+        .enumerate()
+        .map(|(i, (f, e))| (f - e).abs() * scale[i % scale.len()] as f64)
+        .fold(0.0, f64::max)
+}
+
+fn convert_and_run(checkpoint: &Path, config: &Path, inputs: &Path, dir: &Path) -> PathBuf {
+    let model = dir.join("model.scdp");
+    let output = tool(&[
+        "convert",
+        checkpoint.to_str().unwrap(),
+        "--config",
+        config.to_str().unwrap(),
+        "-o",
+        model.to_str().unwrap(),
+    ]);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    let result = dir.join("out.safetensors");
+    let picture = dir.join("anchors.png");
+    let output = tool(&[
+        "run",
+        model.to_str().unwrap(),
+        "--inputs",
+        inputs.to_str().unwrap(),
+        "-o",
+        result.to_str().unwrap(),
+        "--viz",
+        picture.to_str().unwrap(),
+    ]);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    assert!(std::fs::metadata(&picture).unwrap().len() > 1000);
+    result
+}
+
+#[test]
+fn containers_written_by_pytorch_convert_and_run_to_the_reference_output() {
+    let config = repo_file("tests/configs/tiny.toml");
+    let inputs = repo_file("tests/fixtures/golden/tiny/basic.safetensors");
+    for name in [
+        "workspace.ckpt",
+        "state_dict_f16.pt",
+        "weights_bf16.safetensors",
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        let container = repo_file(&format!("tests/fixtures/containers/{name}"));
+        let stem = name.split('.').next().unwrap();
+        let expected = repo_file(&format!(
+            "tests/fixtures/containers/{stem}.expected.safetensors"
+        ));
+        let result = convert_and_run(&container, &config, &inputs, dir.path());
+        let state = weights_tool::load_checkpoint(&container).unwrap();
+        let scale = &state
+            .get("normalizer.params_dict.action.scale")
+            .unwrap()
+            .data;
+        let error = normalized_error(
+            &read_f32(&result, "action_pred"),
+            &read_f32(&expected, "ref64.action_pred"),
+            scale,
+        );
+        assert!(error <= 2e-4, "{name}: action_pred error {error:e} > 2e-4");
+    }
+}
+
+#[test]
+fn run_reproduces_a_golden_fixture() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = repo_file("tests/configs/metaworld.toml");
+    let checkpoint = dir.path().join("metaworld.safetensors");
+    let output = tool(&[
+        "synth",
+        "--config",
+        config.to_str().unwrap(),
+        "--seed",
+        "1",
+        "-o",
+        checkpoint.to_str().unwrap(),
+    ]);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    let inputs = repo_file("tests/fixtures/golden/metaworld/edge.safetensors");
+    let result = convert_and_run(&checkpoint, &config, &inputs, dir.path());
+    let state = weights_tool::load_checkpoint(&checkpoint).unwrap();
+    let scale = &state
+        .get("normalizer.params_dict.action.scale")
+        .unwrap()
+        .data;
+    let error = normalized_error(
+        &read_f32(&result, "action_pred"),
+        &read_f32(&inputs, "ref64.action_pred"),
+        scale,
+    );
+    assert!(error <= 2e-4, "action_pred error {error:e} > 2e-4");
+    let anchors = read_f32(&result, "anchors_uv");
+    let reference = read_f32(&inputs, "ref64.anchors_uv");
+    assert_eq!(
+        anchors.iter().map(|v| v.is_nan()).collect::<Vec<_>>(),
+        reference.iter().map(|v| v.is_nan()).collect::<Vec<_>>(),
+        "the same anchors are behind the camera"
+    );
+}
+
+/// Runs the tool, expecting failure with exactly one line on stderr that contains `needle`.
+fn assert_one_line_error(args: &[&str], needle: &str) {
+    let output = tool(args);
+    assert!(!output.status.success(), "{args:?} succeeded");
+    let stderr = text(&output.stderr);
+    let lines: Vec<&str> = stderr.lines().filter(|l| !l.trim().is_empty()).collect();
+    assert_eq!(
+        lines.len(),
+        1,
+        "{args:?}: expected one error line, got:\n{stderr}"
+    );
+    assert!(
+        lines[0].contains(needle),
+        "{args:?}: {needle:?} not in {:?}",
+        lines[0]
+    );
+}
+
+#[test]
+fn bad_inputs_give_one_clear_error_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let tiny = repo_file("tests/configs/tiny.toml");
+    let tiny = tiny.to_str().unwrap();
+    let path = |name: &str| dir.path().join(name).to_str().unwrap().to_owned();
+
+    // A training checkpoint cut in half.
+    let ckpt = std::fs::read(repo_file("tests/fixtures/containers/workspace.ckpt")).unwrap();
+    std::fs::write(path("cut.ckpt"), &ckpt[..ckpt.len() / 2]).unwrap();
+    assert_one_line_error(
+        &[
+            "convert",
+            &path("cut.ckpt"),
+            "--config",
+            tiny,
+            "-o",
+            &path("x.scdp"),
+        ],
+        "cut.ckpt",
+    );
+
+    // A full checkpoint in which one needed tensor has a dtype the tool does not read: the
+    // key check reports it (a summary line, then one line per problem key).
+    let config = weights_tool::parse_config(&std::fs::read_to_string(tiny).unwrap()).unwrap();
+    let state = weights_tool::synth_state_dict(&config, 1);
+    let encoded: Vec<(String, Vec<usize>, Vec<u8>, safetensors::Dtype)> = state
+        .tensors
+        .iter()
+        .map(|(key, tensor)| {
+            if key == "model.final_conv.1.bias" {
+                (
+                    key.clone(),
+                    tensor.shape.clone(),
+                    vec![0u8; tensor.numel() * 2],
+                    safetensors::Dtype::I16,
+                )
+            } else {
+                let bytes = tensor.data.iter().flat_map(|v| v.to_le_bytes()).collect();
+                (
+                    key.clone(),
+                    tensor.shape.clone(),
+                    bytes,
+                    safetensors::Dtype::F32,
+                )
+            }
+        })
+        .collect();
+    let views = encoded.iter().map(|(key, shape, bytes, dtype)| {
+        (
+            key.as_str(),
+            safetensors::tensor::TensorView::new(*dtype, shape.clone(), bytes).unwrap(),
+        )
+    });
+    safetensors::serialize_to_file(views, None, Path::new(&path("i16.safetensors"))).unwrap();
+    let output = tool(&[
+        "convert",
+        &path("i16.safetensors"),
+        "--config",
+        tiny,
+        "-o",
+        &path("x.scdp"),
+    ]);
+    assert!(!output.status.success());
+    let stderr = text(&output.stderr);
+    assert!(
+        stderr.contains("0 missing, 0 extra, 0 mis-shaped, 1 unreadable"),
+        "{stderr}"
+    );
+    assert!(
+        stderr
+            .lines()
+            .any(|l| l.contains("model.final_conv.1.bias") && l.contains("I16")),
+        "{stderr}"
+    );
+
+    // A weights file with one flipped byte.
+    let checkpoint = path("tiny.safetensors");
+    assert!(
+        tool(&["synth", "--config", tiny, "--seed", "1", "-o", &checkpoint])
+            .status
+            .success()
+    );
+    assert!(
+        tool(&[
+            "convert",
+            &checkpoint,
+            "--config",
+            tiny,
+            "-o",
+            &path("tiny.scdp")
+        ])
+        .status
+        .success()
+    );
+    let mut model = std::fs::read(path("tiny.scdp")).unwrap();
+    let last = model.len() - 100;
+    model[last] ^= 0x40;
+    std::fs::write(path("flipped.scdp"), &model).unwrap();
+    assert_one_line_error(&["inspect", &path("flipped.scdp")], "checksum");
+
+    // Run inputs whose images do not fit the model.
+    let inputs = repo_file("tests/fixtures/golden/metaworld/basic.safetensors");
+    assert_one_line_error(
+        &[
+            "run",
+            &path("tiny.scdp"),
+            "--inputs",
+            inputs.to_str().unwrap(),
+        ],
+        "`images`",
+    );
+
+    // A config the engine cannot run.
+    let text = std::fs::read_to_string(tiny)
+        .unwrap()
+        .replace("horizon = 8", "horizon = 10");
+    std::fs::write(path("bad.toml"), text).unwrap();
+    assert_one_line_error(
+        &[
+            "convert",
+            &checkpoint,
+            "--config",
+            &path("bad.toml"),
+            "-o",
+            &path("x.scdp"),
+        ],
+        "horizon must be a positive multiple of 4",
+    );
+}
