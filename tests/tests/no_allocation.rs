@@ -1,0 +1,97 @@
+//! The engine never allocates: a counting global allocator sees zero allocations from
+//! loading the weights to reading the actions (the weights file and the arena are prepared
+//! before counting starts, as firmware would have them in flash and in a static).
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+use scdp_engine::{ArenaPlan, Model, ModelConfig, Noise, Policy};
+use scdp_tests::{Fixture, golden_fixtures, synthetic_weights_file};
+use weights_tool::writer::AlignedBytes;
+
+struct CountingAllocator;
+
+static COUNTING: AtomicBool = AtomicBool::new(false);
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+
+// SAFETY: forwards every call unchanged to the system allocator; it only counts.
+unsafe impl GlobalAlloc for CountingAllocator {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        if COUNTING.load(Ordering::SeqCst) {
+            ALLOCATIONS.fetch_add(1, Ordering::SeqCst);
+        }
+        // SAFETY: the caller's contract for `alloc` is passed on as is.
+        unsafe { System.alloc(layout) }
+    }
+
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: `ptr` came from `System.alloc` with this layout.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        if COUNTING.load(Ordering::SeqCst) {
+            ALLOCATIONS.fetch_add(1, Ordering::SeqCst);
+        }
+        // SAFETY: the caller's contract for `realloc` is passed on as is.
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static ALLOCATOR: CountingAllocator = CountingAllocator;
+
+/// Allocations made by `work`. Tests in this file run one at a time (one test).
+fn allocations_during(work: impl FnOnce()) -> usize {
+    ALLOCATIONS.store(0, Ordering::SeqCst);
+    COUNTING.store(true, Ordering::SeqCst);
+    work();
+    COUNTING.store(false, Ordering::SeqCst);
+    ALLOCATIONS.load(Ordering::SeqCst)
+}
+
+#[test]
+fn load_and_inference_allocate_nothing() {
+    // Sanity: the counter does count.
+    assert!(allocations_during(|| drop(std::hint::black_box(vec![1u8; 16]))) >= 1);
+
+    for path in golden_fixtures()
+        .into_iter()
+        .filter(|p| !p.to_string_lossy().contains("panda"))
+    {
+        let fixture = Fixture::load(&path).unwrap();
+        let config: ModelConfig = fixture.config;
+        let weights = synthetic_weights_file(&config, fixture.seed).unwrap();
+        let mut arena = AlignedBytes::zeroed(ArenaPlan::new(&config).arena_bytes);
+        let camera = fixture.camera().unwrap();
+        let noise = fixture.f32s("noise");
+        let state = fixture.f32s("state");
+        let frames = config.n_obs_steps as usize;
+        let frame_bytes = fixture.images.len() / frames;
+        let state_dim = config.state_dim as usize;
+        let mut first_actions = [f32::NAN; 2];
+        let count = allocations_during(|| {
+            let model = Model::from_bytes(weights.as_slice()).unwrap();
+            let mut policy = Policy::new(&model, arena.as_mut_slice()).unwrap();
+            policy.set_camera(camera);
+            for frame in 0..frames {
+                policy
+                    .push_observation(
+                        &fixture.images[frame * frame_bytes..][..frame_bytes],
+                        &state[frame * state_dim..][..state_dim],
+                    )
+                    .unwrap();
+            }
+            // Both noise sources: given values and the engine's own generator.
+            first_actions[0] = policy.infer(Noise::Given(&noise)).unwrap().action()[0];
+            first_actions[1] = policy.infer(Noise::Seed(5)).unwrap().action()[0];
+        });
+        assert!(first_actions.iter().all(|a| a.is_finite()));
+        assert_eq!(
+            count,
+            0,
+            "{}: {count} allocations during load and inference",
+            path.display()
+        );
+    }
+}
