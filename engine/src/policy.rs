@@ -368,24 +368,22 @@ impl<'w, 'a> Policy<'w, 'a> {
     }
 
     /// Projected map F(level + 1) of history frame `frame` (0 = oldest), `[H_n, W_n, d]`.
-    pub fn feature_map(&mut self, frame: usize, level: usize) -> Option<&[f32]> {
-        let config = *self.config();
+    pub fn feature_map(&self, frame: usize, level: usize) -> Option<&[f32]> {
+        let config = self.config();
         let frames = config.n_obs_steps as usize;
         if !self.has_observation || frame >= frames || level >= PYRAMID_LEVELS {
             return None;
         }
         let slot = (self.newest + 1 + frame) % frames;
-        let frame_len = config.feature_frame_len();
         let feature_dim = config.feature_dim as usize;
-        let start: usize = (0..level)
-            .map(|l| {
-                let (h, w) = config.pyramid_size(l);
-                h * w * feature_dim
-            })
-            .sum();
-        let (height, width) = config.pyramid_size(level);
-        let features = self.buffers().features;
-        Some(&features[slot * frame_len + start..][..height * width * feature_dim])
+        let level_len = |l: usize| {
+            let (height, width) = config.pyramid_size(l);
+            height * width * feature_dim
+        };
+        let start: usize =
+            slot * config.feature_frame_len() + (0..level).map(level_len).sum::<usize>();
+        // The feature maps are the arena's first buffer (see `buffers`).
+        Some(&self.arena[start..][..level_len(level)])
     }
 }
 
