@@ -141,6 +141,26 @@ fn normalized_error(found: &[f64], expected: &[f64], scale: &[f32]) -> f64 {
         .fold(0.0, f64::max)
 }
 
+/// The run output's `action_pred` is within the engine's bound (2e-4 in normalized action
+/// units) of the float64 reference in `reference`; `checkpoint` supplies the action scale.
+fn assert_action_pred_matches(result: &Path, reference: &Path, checkpoint: &Path) {
+    let state = weights_tool::load_checkpoint(checkpoint).unwrap();
+    let scale = &state
+        .get("normalizer.params_dict.action.scale")
+        .unwrap()
+        .data;
+    let error = normalized_error(
+        &read_f32(result, "action_pred"),
+        &read_f32(reference, "ref64.action_pred"),
+        scale,
+    );
+    assert!(
+        error <= 2e-4,
+        "{}: action_pred error {error:e} > 2e-4",
+        checkpoint.display()
+    );
+}
+
 fn convert_and_run(checkpoint: &Path, config: &Path, inputs: &Path, dir: &Path) -> PathBuf {
     let model = dir.join("model.scdp");
     let output = tool(&[
@@ -185,17 +205,7 @@ fn containers_written_by_pytorch_convert_and_run_to_the_reference_output() {
             "tests/fixtures/containers/{stem}.expected.safetensors"
         ));
         let result = convert_and_run(&container, &config, &inputs, dir.path());
-        let state = weights_tool::load_checkpoint(&container).unwrap();
-        let scale = &state
-            .get("normalizer.params_dict.action.scale")
-            .unwrap()
-            .data;
-        let error = normalized_error(
-            &read_f32(&result, "action_pred"),
-            &read_f32(&expected, "ref64.action_pred"),
-            scale,
-        );
-        assert!(error <= 2e-4, "{name}: action_pred error {error:e} > 2e-4");
+        assert_action_pred_matches(&result, &expected, &container);
     }
 }
 
@@ -216,17 +226,7 @@ fn run_reproduces_a_golden_fixture() {
     assert!(output.status.success(), "{}", text(&output.stderr));
     let inputs = repo_file("tests/fixtures/golden/metaworld/edge.safetensors");
     let result = convert_and_run(&checkpoint, &config, &inputs, dir.path());
-    let state = weights_tool::load_checkpoint(&checkpoint).unwrap();
-    let scale = &state
-        .get("normalizer.params_dict.action.scale")
-        .unwrap()
-        .data;
-    let error = normalized_error(
-        &read_f32(&result, "action_pred"),
-        &read_f32(&inputs, "ref64.action_pred"),
-        scale,
-    );
-    assert!(error <= 2e-4, "action_pred error {error:e} > 2e-4");
+    assert_action_pred_matches(&result, &inputs, &checkpoint);
     let anchors = read_f32(&result, "anchors_uv");
     let reference = read_f32(&inputs, "ref64.anchors_uv");
     assert_eq!(
