@@ -12,7 +12,7 @@ fn main() {
 mod freestanding {
     use std::path::PathBuf;
 
-    use weights_tool::lower::lower_to_weights_file;
+    use weights_tool::lowering::lower_to_weights_file;
     use weights_tool::synth::synth_state_dict;
     use weights_tool::{Quant, parse_config};
 

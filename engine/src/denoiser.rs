@@ -3,8 +3,8 @@
 
 use crate::config::{ModelConfig, UNET_LEVELS};
 use crate::kernels::ops::{self, Activation};
-use crate::kernels::{Accumulate, ConvShape, Kernels};
-use crate::weights::{Conv, DenoiserWeights, Norm, ResidualBlock};
+use crate::kernels::{self, Accumulate, Activations, ConvShape, Kernels};
+use crate::weights::{Conv, ConvF32, DenoiserWeights, Norm, ResidualBlock};
 
 /// Diffusion Policy builds the head's Conv1dBlock without passing `n_groups`, so it always
 /// has its default of 8 groups.
@@ -19,19 +19,40 @@ pub struct DenoiserScratch<'a> {
     pub film: &'a mut [f32],
 }
 
-struct Context<'k, 'c> {
-    kernels: &'k dyn Kernels,
-    config: &'c ModelConfig,
+struct Context<'a> {
+    kernels: &'a dyn Kernels,
+    config: &'a ModelConfig,
     step: usize,
     /// `Mish(g)`: the FiLM layers' input (the time-embedding part is precomputed).
-    activated_cond: &'c [f32],
+    activated_cond: &'a [f32],
+    film: &'a mut [f32],
 }
 
-impl Context<'_, '_> {
+impl Context<'_> {
+    fn convolve(
+        &mut self,
+        shape: &ConvShape,
+        conv: &Conv<'_>,
+        input: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        kernels::convolve(
+            self.kernels,
+            shape,
+            input,
+            &conv.weight,
+            conv.bias,
+            output,
+            accumulate,
+            Activations::F32,
+        );
+    }
+
     /// Conv1d(k, padding k/2) -> GroupNorm(groups) -> Mish, `[length, in]` -> `[length, out]`.
     #[allow(clippy::too_many_arguments)]
     fn conv_block(
-        &self,
+        &mut self,
         conv: &Conv<'_>,
         norm: &Norm<'_>,
         groups: usize,
@@ -43,15 +64,8 @@ impl Context<'_, '_> {
         let kernel = self.config.kernel_size as usize;
         let out_channels = norm.gamma.len();
         let shape = ConvShape::sequence(length, in_channels, out_channels, kernel, 1, kernel / 2);
+        self.convolve(&shape, conv, input, output, Accumulate::Overwrite);
         let output = &mut output[..shape.output_len()];
-        self.kernels.conv(
-            &shape,
-            &input[..shape.input_len()],
-            conv.weight,
-            conv.bias,
-            output,
-            Accumulate::Overwrite,
-        );
         ops::group_norm(
             output,
             out_channels,
@@ -64,28 +78,33 @@ impl Context<'_, '_> {
 
     /// ConditionalResidualBlock1D: `input` `[length, in]` -> `output` `[length, out]`.
     fn residual_block(
-        &self,
+        &mut self,
         block: &ResidualBlock<'_>,
         length: usize,
         input: &[f32],
         temporary: &mut [f32],
         output: &mut [f32],
-        film: &mut [f32],
     ) {
         let out_channels = block.out_channels;
+        let groups = self.config.n_groups as usize;
         self.conv_block(
             &block.conv0,
             &block.norm0,
-            self.config.n_groups as usize,
+            groups,
             length,
             block.in_channels,
             input,
             temporary,
         );
-        let film = &mut film[..2 * out_channels];
+        let film = &mut self.film[..2 * out_channels];
         let base = &block.film_table[self.step * 2 * out_channels..][..2 * out_channels];
-        self.kernels
-            .matvec(block.film_weight, self.activated_cond, base, film);
+        kernels::linear(
+            self.kernels,
+            &block.film_weight,
+            self.activated_cond,
+            base,
+            film,
+        );
         let (scale, bias) = film.split_at(out_channels);
         for position in temporary[..length * out_channels].chunks_exact_mut(out_channels) {
             for ((value, &s), &b) in position.iter_mut().zip(scale).zip(bias) {
@@ -95,33 +114,29 @@ impl Context<'_, '_> {
         self.conv_block(
             &block.conv1,
             &block.norm1,
-            self.config.n_groups as usize,
+            groups,
             length,
             out_channels,
             temporary,
             output,
         );
-        let output = &mut output[..length * out_channels];
         let input = &input[..length * block.in_channels];
         match &block.residual {
             Some(residual) => {
                 let shape = ConvShape::sequence(length, block.in_channels, out_channels, 1, 1, 0);
-                self.kernels.conv(
-                    &shape,
-                    input,
-                    residual.weight,
-                    residual.bias,
-                    output,
-                    Accumulate::Add,
-                );
+                self.convolve(&shape, residual, input, output, Accumulate::Add);
             }
-            None => ops::add_activate(output, input, Activation::None),
+            None => ops::add_activate(
+                &mut output[..length * out_channels],
+                input,
+                Activation::None,
+            ),
         }
     }
 
     /// Conv1d(3, stride 2, padding 1): `[length, channels]` -> `[length / 2, channels]`.
     fn downsample(
-        &self,
+        &mut self,
         conv: &Conv<'_>,
         length: usize,
         channels: usize,
@@ -129,19 +144,13 @@ impl Context<'_, '_> {
         output: &mut [f32],
     ) {
         let shape = ConvShape::sequence(length, channels, channels, 3, 2, 1);
-        self.kernels.conv(
-            &shape,
-            &input[..shape.input_len()],
-            conv.weight,
-            conv.bias,
-            &mut output[..shape.output_len()],
-            Accumulate::Overwrite,
-        );
+        self.convolve(&shape, conv, input, output, Accumulate::Overwrite);
     }
 
+    /// ConvTranspose1d(4, stride 2, padding 1): `[length, channels]` -> `[2 length, channels]`.
     fn upsample(
         &self,
-        conv: &Conv<'_>,
+        conv: &ConvF32<'_>,
         length: usize,
         channels: usize,
         input: &[f32],
@@ -188,44 +197,45 @@ pub fn predict_noise(
     scratch: DenoiserScratch<'_>,
     eps: &mut [f32],
 ) {
-    let context = Context {
-        kernels,
-        config,
-        step,
-        activated_cond,
-    };
     let DenoiserScratch {
         work: [w0, w1, w2, w3],
         skips: [skip1, skip2],
         film,
     } = scratch;
+    let mut context = Context {
+        kernels,
+        config,
+        step,
+        activated_cond,
+        film,
+    };
     let horizon = config.horizon as usize;
     let dims = config.down_dims.map(|d| d as usize);
     let [level0, level1, level2] = &weights.down;
 
     // Down path. The level-0 skip is never read (as in Diffusion Policy), so it is not kept.
-    context.residual_block(&level0[0], horizon, sample, w3, w0, film);
-    context.residual_block(&level0[1], horizon, w0, w3, w1, film);
+    context.residual_block(&level0[0], horizon, sample, w3, w0);
+    context.residual_block(&level0[1], horizon, w0, w3, w1);
     context.downsample(&weights.downsample[0], horizon, dims[0], w1, w0);
     let half = horizon / 2;
-    context.residual_block(&level1[0], half, w0, w3, w1, film);
-    context.residual_block(&level1[1], half, w1, w3, skip1, film);
+    context.residual_block(&level1[0], half, w0, w3, w1);
+    context.residual_block(&level1[1], half, w1, w3, skip1);
     context.downsample(&weights.downsample[1], half, dims[1], skip1, w0);
     let quarter = horizon / 4;
-    context.residual_block(&level2[0], quarter, w0, w3, w1, film);
-    context.residual_block(&level2[1], quarter, w1, w3, skip2, film);
+    context.residual_block(&level2[0], quarter, w0, w3, w1);
+    context.residual_block(&level2[1], quarter, w1, w3, skip2);
 
-    context.residual_block(&weights.mid[0], quarter, skip2, w3, w0, film);
-    context.residual_block(&weights.mid[1], quarter, w0, w3, w1, film);
+    context.residual_block(&weights.mid[0], quarter, skip2, w3, w0);
+    context.residual_block(&weights.mid[1], quarter, w0, w3, w1);
 
     // Up path: concatenate the skip of the same resolution, two blocks, upsample.
     concat_channels(w1, dims[2], skip2, dims[2], quarter, w0);
-    context.residual_block(&weights.up[0][0], quarter, w0, w3, w1, film);
-    context.residual_block(&weights.up[0][1], quarter, w1, w3, w2, film);
+    context.residual_block(&weights.up[0][0], quarter, w0, w3, w1);
+    context.residual_block(&weights.up[0][1], quarter, w1, w3, w2);
     context.upsample(&weights.upsample[0], quarter, dims[1], w2, w0);
     concat_channels(w0, dims[1], skip1, dims[1], half, w1);
-    context.residual_block(&weights.up[1][0], half, w1, w3, w0, film);
-    context.residual_block(&weights.up[1][1], half, w0, w3, w2, film);
+    context.residual_block(&weights.up[1][0], half, w1, w3, w0);
+    context.residual_block(&weights.up[1][1], half, w0, w3, w2);
     context.upsample(&weights.upsample[1], half, dims[0], w2, w0);
 
     context.conv_block(
@@ -239,11 +249,10 @@ pub fn predict_noise(
     );
     let action_dim = config.action_dim as usize;
     let shape = ConvShape::sequence(horizon, dims[0], action_dim, 1, 1, 0);
-    kernels.conv(
+    context.convolve(
         &shape,
-        &w1[..shape.input_len()],
-        weights.final_projection.weight,
-        weights.final_projection.bias,
+        &weights.final_projection,
+        w1,
         eps,
         Accumulate::Overwrite,
     );

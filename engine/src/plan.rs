@@ -50,6 +50,10 @@ pub struct ArenaPlan {
     pub activated_cond: usize,
     /// FiLM scale and bias of the residual block being run.
     pub film: usize,
+    /// Int8 weights only: a trunk layer's input quantized (bytes of the largest trunk
+    /// activation, in f32 units), and one scale per pixel of it.
+    pub quantized: usize,
+    pub quantized_scales: usize,
 
     /// Shared scratch: the larger of the two phases below.
     pub scratch: usize,
@@ -86,8 +90,6 @@ impl ArenaPlan {
             level += 1;
         }
         let film = aligned_len(2 * widest);
-        let persistent =
-            features + states + anchors + sample + eps + global_cond + activated_cond + film;
 
         // Trunk: the image and every stage's activation fit in one activation buffer.
         let image = config.image_height as usize * config.image_width as usize * 3;
@@ -133,6 +135,22 @@ impl ArenaPlan {
         // convolutions per block, 12 blocks, plus the resampling layers and the head).
         let unet_naive = 3 * 12 * horizon * 2 * widest + 6 * horizon * widest;
 
+        // Int8 activations are the trunk's only (the U-Net's int8 weights are weight-only):
+        // its inputs, the image included should the stem be int8, fit one activation
+        // buffer, and their rows are at most the image's pixels.
+        let quantized = aligned_len(trunk_activation.div_ceil(4));
+        let quantized_scales =
+            aligned_len(config.image_height as usize * config.image_width as usize);
+        let persistent = features
+            + states
+            + anchors
+            + sample
+            + eps
+            + global_cond
+            + activated_cond
+            + film
+            + quantized
+            + quantized_scales;
         let scratch = if trunk > unet { trunk } else { unet };
         ArenaPlan {
             arena_bytes: 4 * (persistent + scratch),
@@ -145,6 +163,8 @@ impl ArenaPlan {
             global_cond,
             activated_cond,
             film,
+            quantized,
+            quantized_scales,
             scratch,
             trunk_activation,
             trunk_stem,

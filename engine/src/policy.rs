@@ -7,9 +7,9 @@ use crate::denoiser::{self, DenoiserScratch};
 use crate::error::Error;
 use crate::format::WeightsFile;
 use crate::frame;
-use crate::kernels::Kernels;
 use crate::kernels::ops::mish;
 use crate::kernels::scalar::Scalar;
+use crate::kernels::{Kernels, QuantizeScratch};
 use crate::plan::{ArenaPlan, Carver};
 use crate::pyramid::{self, TrunkScratch};
 use crate::rng::NoiseRng;
@@ -96,6 +96,7 @@ struct Buffers<'a> {
     global_cond: &'a mut [f32],
     activated_cond: &'a mut [f32],
     film: &'a mut [f32],
+    quantized: QuantizeScratch<'a>,
     scratch: &'a mut [f32],
 }
 
@@ -169,6 +170,10 @@ impl<'w, 'a> Policy<'w, 'a> {
             global_cond: carver.take(plan.global_cond),
             activated_cond: carver.take(plan.activated_cond),
             film: carver.take(plan.film),
+            quantized: QuantizeScratch {
+                values: bytemuck::cast_slice_mut(carver.take(plan.quantized)),
+                scales: carver.take(plan.quantized_scales),
+            },
             scratch: carver.take(plan.scratch),
         }
     }
@@ -207,6 +212,7 @@ impl<'w, 'a> Policy<'w, 'a> {
             first,
             rest,
             activation_len: plan.trunk_activation,
+            quantized: buffers.quantized,
         };
         pyramid::encode(kernels, &config, &weights.pyramid, scratch, features);
         buffers.states[slot * state_dim..][..state_dim].copy_from_slice(state);

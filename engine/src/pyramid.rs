@@ -3,7 +3,7 @@
 
 use crate::config::ModelConfig;
 use crate::kernels::ops::{self, Activation};
-use crate::kernels::{Accumulate, ConvShape, Kernels};
+use crate::kernels::{self, Accumulate, Activations, ConvShape, Kernels, QuantizeScratch};
 use crate::weights::{ConvNorm, PyramidWeights};
 
 /// Four activation buffers the residual blocks rotate through; the first holds the image.
@@ -12,6 +12,8 @@ pub struct TrunkScratch<'a> {
     /// The stem's output lives here first; afterwards it is split into the other three.
     pub rest: &'a mut [f32],
     pub activation_len: usize,
+    /// Int8 copy of a layer's input, for int8 weights.
+    pub quantized: QuantizeScratch<'a>,
 }
 
 /// Convolution, then norm (GroupNorm when the trunk has one; BatchNorm is already folded)
@@ -23,16 +25,19 @@ fn conv_norm(
     input: &[f32],
     output: &mut [f32],
     activation: Activation,
+    quantized: &mut QuantizeScratch<'_>,
 ) {
-    let output = &mut output[..shape.output_len()];
-    kernels.conv(
+    kernels::convolve(
+        kernels,
         shape,
-        &input[..shape.input_len()],
-        layer.conv.weight,
+        input,
+        &layer.conv.weight,
         layer.conv.bias,
         output,
         Accumulate::Overwrite,
+        Activations::Int8(quantized),
     );
+    let output = &mut output[..shape.output_len()];
     match &layer.norm {
         Some(norm) => ops::group_norm(
             output,
@@ -52,7 +57,7 @@ pub fn encode(
     kernels: &dyn Kernels,
     config: &ModelConfig,
     weights: &PyramidWeights<'_>,
-    scratch: TrunkScratch<'_>,
+    mut scratch: TrunkScratch<'_>,
     features: &mut [f32],
 ) {
     let feature_dim = config.feature_dim as usize;
@@ -67,6 +72,7 @@ pub fn encode(
         scratch.first,
         scratch.rest,
         Activation::Relu,
+        &mut scratch.quantized,
     );
     let (height, width) = config.pyramid_size(0);
     ops::max_pool_3x3_stride_2(
@@ -84,8 +90,13 @@ pub fn encode(
         &mut fourth[..scratch.activation_len],
     ];
 
+    let mut quantized = scratch.quantized;
     let mut feature_maps = features;
-    let project = |level: usize, input: &[f32], output: &mut &mut [f32]| {
+    // Projects tap C(level + 1) into the next map of `feature_maps`.
+    let project = |level: usize,
+                   input: &[f32],
+                   maps: &mut &mut [f32],
+                   quantized: &mut QuantizeScratch<'_>| {
         let (height, width) = config.pyramid_size(level);
         let shape = ConvShape::square(
             (height, width, config.pyramid_channels(level)),
@@ -94,19 +105,21 @@ pub fn encode(
             1,
             1,
         );
-        let (map, rest) = core::mem::take(output).split_at_mut(shape.output_len());
+        let (map, rest) = core::mem::take(maps).split_at_mut(shape.output_len());
         let projection = &weights.projections[level];
-        kernels.conv(
+        kernels::convolve(
+            kernels,
             &shape,
-            &input[..shape.input_len()],
-            projection.weight,
+            input,
+            &projection.weight,
             projection.bias,
             map,
             Accumulate::Overwrite,
+            Activations::Int8(quantized),
         );
-        *output = rest;
+        *maps = rest;
     };
-    project(0, buffers[0], &mut feature_maps);
+    project(0, buffers[0], &mut feature_maps, &mut quantized);
 
     let (mut height, mut width) = (height, width);
     let mut channels = stem_channels;
@@ -127,6 +140,7 @@ pub fn encode(
                 input,
                 middle,
                 Activation::Relu,
+                &mut quantized,
             );
             conv_norm(
                 kernels,
@@ -135,6 +149,7 @@ pub fn encode(
                 middle,
                 output,
                 Activation::None,
+                &mut quantized,
             );
             let output_len = second_shape.output_len();
             let identity: &[f32] = match &block.downsample {
@@ -147,6 +162,7 @@ pub fn encode(
                         input,
                         shortcut,
                         Activation::None,
+                        &mut quantized,
                     );
                     &shortcut[..output_len]
                 }
@@ -157,6 +173,6 @@ pub fn encode(
             buffers.swap(0, 2);
             (height, width, channels) = (out_height, out_width, out_channels);
         }
-        project(stage + 1, buffers[0], &mut feature_maps);
+        project(stage + 1, buffers[0], &mut feature_maps, &mut quantized);
     }
 }

@@ -16,12 +16,49 @@ use core::fmt::{self, Write};
 
 use crate::config::{BackboneNorm, ModelConfig, PYRAMID_LEVELS, UNET_LEVELS};
 use crate::error::Error;
-use crate::format::{DType, WeightsFile};
+use crate::format::{DType, TensorEntry, WeightsFile};
 
 /// Anything that can hand out the model's tensors in order.
 pub trait TensorSource<'w> {
     /// The next tensor, which must be called `name` and have exactly `dims`.
     fn f32_tensor(&mut self, name: fmt::Arguments<'_>, dims: &[usize]) -> Result<&'w [f32], Error>;
+
+    /// The next weight matrix or kernel called `name` with `dims`: f32, or int8 followed by
+    /// its `channels` per-channel scales called `scale_name`. The weights tool chooses.
+    fn weight(
+        &mut self,
+        name: fmt::Arguments<'_>,
+        scale_name: fmt::Arguments<'_>,
+        dims: &[usize],
+        channels: usize,
+    ) -> Result<Weight<'w>, Error>;
+}
+
+/// A weight tensor as stored: f32, or symmetric int8 with one scale per output channel
+/// (`value = q * scale`).
+#[derive(Clone, Copy, Debug)]
+pub enum Weight<'w> {
+    F32(&'w [f32]),
+    Int8 { values: &'w [i8], scales: &'w [f32] },
+}
+
+impl Default for Weight<'_> {
+    fn default() -> Self {
+        Weight::F32(&[])
+    }
+}
+
+impl Weight<'_> {
+    pub fn len(&self) -> usize {
+        match self {
+            Weight::F32(values) => values.len(),
+            Weight::Int8 { values, .. } => values.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
 }
 
 /// Reads tensors in place from a validated file, in table order.
@@ -45,27 +82,67 @@ impl<'w> FileSource<'w> {
     }
 }
 
-impl<'w> TensorSource<'w> for FileSource<'w> {
-    fn f32_tensor(&mut self, name: fmt::Arguments<'_>, dims: &[usize]) -> Result<&'w [f32], Error> {
+impl<'w> FileSource<'w> {
+    /// The next entry, checked against `name` and `dims`; any dtype.
+    fn next_entry(
+        &mut self,
+        name: fmt::Arguments<'_>,
+        dims: &[usize],
+    ) -> Result<(usize, TensorEntry<'w>), Error> {
         let index = self.next;
         let entry = self.file.entry(index)?;
         let unexpected = Error::UnexpectedTensor { index };
         let mut expected_name = heapless::String::<64>::new();
         expected_name.write_fmt(name).map_err(|_| unexpected)?;
-        if entry.name != expected_name.as_str() || entry.dtype != DType::F32 || entry.dims() != dims
-        {
+        if entry.name != expected_name.as_str() || entry.dims() != dims {
             return Err(unexpected);
         }
         self.next += 1;
-        bytemuck::try_cast_slice(self.file.data(&entry))
-            .map_err(|_| Error::BadTensorEntry { index })
+        Ok((index, entry))
+    }
+
+    fn f32_data(&self, index: usize, entry: &TensorEntry<'w>) -> Result<&'w [f32], Error> {
+        if entry.dtype != DType::F32 {
+            return Err(Error::UnexpectedTensor { index });
+        }
+        bytemuck::try_cast_slice(self.file.data(entry)).map_err(|_| Error::BadTensorEntry { index })
     }
 }
 
-/// A convolution (any rank) or linear layer: packed weight and bias.
+impl<'w> TensorSource<'w> for FileSource<'w> {
+    fn f32_tensor(&mut self, name: fmt::Arguments<'_>, dims: &[usize]) -> Result<&'w [f32], Error> {
+        let (index, entry) = self.next_entry(name, dims)?;
+        self.f32_data(index, &entry)
+    }
+
+    fn weight(
+        &mut self,
+        name: fmt::Arguments<'_>,
+        scale_name: fmt::Arguments<'_>,
+        dims: &[usize],
+        channels: usize,
+    ) -> Result<Weight<'w>, Error> {
+        let (index, entry) = self.next_entry(name, dims)?;
+        match entry.dtype {
+            DType::F32 => Ok(Weight::F32(self.f32_data(index, &entry)?)),
+            DType::I8 => {
+                let values = bytemuck::cast_slice(self.file.data(&entry));
+                let scales = self.f32_tensor(scale_name, &[channels])?;
+                // A zero, negative or non-finite scale is not a quantization anyone wrote.
+                if scales.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+                    return Err(Error::UnexpectedTensor { index: index + 1 });
+                }
+                Ok(Weight::Int8 { values, scales })
+            }
+        }
+    }
+}
+
+/// A convolution (any rank) or linear layer: packed weight (one int8 scale per output
+/// channel, the last axis) and bias.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Conv<'w> {
-    pub weight: &'w [f32],
+    pub weight: Weight<'w>,
     pub bias: &'w [f32],
 }
 
@@ -108,11 +185,20 @@ pub struct ResidualBlock<'w> {
     pub norm0: Norm<'w>,
     pub conv1: Conv<'w>,
     pub norm1: Norm<'w>,
-    /// `[2 out, global_cond_dim]`: rows 0..out give the scale, out..2 out the bias.
-    pub film_weight: &'w [f32],
+    /// `[2 out, global_cond_dim]`: rows 0..out give the scale, out..2 out the bias (int8
+    /// scales per row).
+    pub film_weight: Weight<'w>,
     /// `[steps, 2 out]`: the time-embedding term plus the linear bias, per inference step.
     pub film_table: &'w [f32],
     pub residual: Option<Conv<'w>>,
+}
+
+/// A layer the tool always stores in f32 (the transposed convolutions: 2% of the U-Net's
+/// weights, and their kernel has no int8 form).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ConvF32<'w> {
+    pub weight: &'w [f32],
+    pub bias: &'w [f32],
 }
 
 /// ConditionalUnet1D.
@@ -122,7 +208,7 @@ pub struct DenoiserWeights<'w> {
     pub downsample: [Conv<'w>; UNET_LEVELS - 1],
     pub mid: [ResidualBlock<'w>; 2],
     pub up: [[ResidualBlock<'w>; 2]; UNET_LEVELS - 1],
-    pub upsample: [Conv<'w>; UNET_LEVELS - 1],
+    pub upsample: [ConvF32<'w>; UNET_LEVELS - 1],
     pub final_conv: Conv<'w>,
     pub final_norm: Norm<'w>,
     pub final_projection: Conv<'w>,
@@ -156,7 +242,12 @@ fn conv<'w>(
 ) -> Result<Conv<'w>, Error> {
     let out = weight_dims[weight_dims.len() - 1];
     Ok(Conv {
-        weight: source.f32_tensor(format_args!("{name}.weight"), weight_dims)?,
+        weight: source.weight(
+            format_args!("{name}.weight"),
+            format_args!("{name}.weight_scale"),
+            weight_dims,
+            out,
+        )?,
         bias: source.f32_tensor(format_args!("{name}.bias"), &[out])?,
     })
 }
@@ -211,9 +302,11 @@ fn residual_block<'w>(
             &[kernel, out_channels, out_channels],
         )?,
         norm1: norm(source, format_args!("{name}.norm1"), out_channels)?,
-        film_weight: source.f32_tensor(
+        film_weight: source.weight(
             format_args!("{name}.film.weight"),
+            format_args!("{name}.film.weight_scale"),
             &[2 * out_channels, config.global_cond_dim()],
+            2 * out_channels,
         )?,
         film_table: source.f32_tensor(
             format_args!("{name}.film.table"),
@@ -349,11 +442,15 @@ impl<'w> ModelWeights<'w> {
                 dims[level],
                 dims[level],
             )?;
-            denoiser.upsample[index] = conv(
-                source,
-                format_args!("unet.up.{index}.upsample"),
-                &[4, dims[level], dims[level]],
-            )?;
+            let channels = dims[level];
+            denoiser.upsample[index] = ConvF32 {
+                weight: source.f32_tensor(
+                    format_args!("unet.up.{index}.upsample.weight"),
+                    &[4, channels, channels],
+                )?,
+                bias: source
+                    .f32_tensor(format_args!("unet.up.{index}.upsample.bias"), &[channels])?,
+            };
         }
         let kernel = config.kernel_size as usize;
         denoiser.final_conv = conv(

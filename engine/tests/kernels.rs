@@ -356,3 +356,184 @@ fn max_pool_ignores_padding_even_for_negative_inputs() {
         }
     }
 }
+
+fn random_i8(rng: &mut Lcg, len: usize) -> Vec<i8> {
+    (0..len)
+        .map(|_| (rng.next() * 127.0).round() as i8)
+        .collect()
+}
+
+#[test]
+fn int8_convolution_sums_exactly_per_tap_then_scales() {
+    use scdp_engine::kernels::QuantizedRows;
+    let mut rng = Lcg(17);
+    for case in 0..40 {
+        let kernel = [1, 3, 5][rng.below(3)];
+        let stride = 1 + rng.below(2);
+        let padding = rng.below(kernel / 2 + 1);
+        let in_channels = 1 + rng.below(40);
+        let out_channels = 1 + rng.below(300); // crosses the kernel's 128-channel blocks
+        let shape = ConvShape::square(
+            (kernel + rng.below(5), kernel + rng.below(5), in_channels),
+            out_channels,
+            kernel,
+            stride,
+            padding,
+        );
+        let values = random_i8(&mut rng, shape.input_len());
+        let rows = shape.in_height * shape.in_width;
+        let row_scales: Vec<f32> = (0..rows).map(|_| 0.01 + rng.next().abs()).collect();
+        let weight = random_i8(&mut rng, shape.weight_len());
+        let weight_scales: Vec<f32> = (0..out_channels)
+            .map(|_| 0.001 + rng.next().abs() * 0.01)
+            .collect();
+        let bias = rng.vec(out_channels);
+        let mut output = vec![f32::NAN; shape.output_len()];
+        let input = QuantizedRows {
+            values: &values,
+            scales: &row_scales,
+        };
+        Scalar.conv_int8(
+            &shape,
+            &input,
+            &weight,
+            &weight_scales,
+            &bias,
+            &mut output,
+            Accumulate::Overwrite,
+        );
+        // Textbook: exact integer sums per tap (in i64), scaled by the tap's row scale, in f64.
+        let (oh, ow) = (shape.out_height(), shape.out_width());
+        for y in 0..oh {
+            for x in 0..ow {
+                for o in 0..out_channels {
+                    let mut total = 0.0f64;
+                    let mut magnitude = 0.0f64;
+                    for ky in 0..kernel {
+                        for kx in 0..kernel {
+                            let iy = (y * stride + ky) as isize - padding as isize;
+                            let ix = (x * stride + kx) as isize - padding as isize;
+                            if iy < 0
+                                || ix < 0
+                                || iy >= shape.in_height as isize
+                                || ix >= shape.in_width as isize
+                            {
+                                continue;
+                            }
+                            let row = iy as usize * shape.in_width + ix as usize;
+                            let sum: i64 = (0..in_channels)
+                                .map(|i| {
+                                    values[row * in_channels + i] as i64
+                                        * weight[((ky * kernel + kx) * in_channels + i)
+                                            * out_channels
+                                            + o] as i64
+                                })
+                                .sum();
+                            total += sum as f64 * row_scales[row] as f64;
+                            magnitude += (sum as f64 * row_scales[row] as f64).abs();
+                        }
+                    }
+                    let expected = total * weight_scales[o] as f64 + bias[o] as f64;
+                    let found = output[(y * ow + x) * out_channels + o] as f64;
+                    // Only the f32 scaling rounds: a few ulps of the summed magnitudes.
+                    let tolerance = 1e-6
+                        * (magnitude * weight_scales[o] as f64 + bias[o].abs() as f64).max(1e-6);
+                    assert!(
+                        (found - expected).abs() <= tolerance,
+                        "case {case} ({y},{x},{o}): {found} vs {expected}"
+                    );
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn weight_only_int8_matches_dequantized_f32_kernels() {
+    let mut rng = Lcg(23);
+    for case in 0..30 {
+        let kernel = [1, 3, 5][rng.below(3)];
+        let shape = ConvShape::sequence(
+            kernel + rng.below(12),
+            1 + rng.below(50),
+            1 + rng.below(200),
+            kernel,
+            1 + rng.below(2),
+            kernel / 2,
+        );
+        let input = rng.vec(shape.input_len());
+        let weight = random_i8(&mut rng, shape.weight_len());
+        let scales: Vec<f32> = (0..shape.out_channels)
+            .map(|_| 0.001 + rng.next().abs() * 0.01)
+            .collect();
+        let bias = rng.vec(shape.out_channels);
+        let dequantized: Vec<f32> = weight
+            .iter()
+            .enumerate()
+            .map(|(i, &q)| q as f32 * scales[i % shape.out_channels])
+            .collect();
+        let mut expected = vec![0.0; shape.output_len()];
+        Scalar.conv(
+            &shape,
+            &input,
+            &dequantized,
+            &bias,
+            &mut expected,
+            Accumulate::Overwrite,
+        );
+        let mut found = vec![0.0; shape.output_len()];
+        Scalar.conv_weight_int8(
+            &shape,
+            &input,
+            &weight,
+            &scales,
+            &bias,
+            &mut found,
+            Accumulate::Overwrite,
+        );
+        for (i, (f, e)) in found.iter().zip(&expected).enumerate() {
+            assert!(
+                (f - e).abs() <= 1e-4 * (1.0 + e.abs()),
+                "case {case} [{i}]: {f} vs {e}"
+            );
+        }
+    }
+    let (rows, cols) = (37, 91);
+    let weight = random_i8(&mut rng, rows * cols);
+    let scales: Vec<f32> = (0..rows).map(|_| 0.002 + rng.next().abs() * 0.01).collect();
+    let input = rng.vec(cols);
+    let base = rng.vec(rows);
+    let mut found = vec![0.0; rows];
+    Scalar.matvec_weight_int8(&weight, &scales, &input, &base, &mut found);
+    for r in 0..rows {
+        let expected: f64 = base[r] as f64
+            + scales[r] as f64
+                * (0..cols)
+                    .map(|c| weight[r * cols + c] as f64 * input[c] as f64)
+                    .sum::<f64>();
+        assert!((found[r] as f64 - expected).abs() < 1e-5, "row {r}");
+    }
+}
+
+#[test]
+fn symmetric_quantization_round_trips_within_half_a_step() {
+    let mut rng = Lcg(29);
+    let input: Vec<f32> = (0..1000).map(|_| rng.next() * 3.0).collect();
+    let mut quantized = vec![0i8; input.len()];
+    let scale = ops::quantize_symmetric(&input, &mut quantized);
+    let largest = input.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+    assert_eq!(scale, largest / 127.0);
+    assert!(quantized.iter().any(|&q| q.unsigned_abs() == 127));
+    for (&x, &q) in input.iter().zip(&quantized) {
+        assert!(
+            (q as f32 * scale - x).abs() <= 0.5 * scale * (1.0 + 1e-5),
+            "{x} -> {q}"
+        );
+    }
+    let mut zeros = vec![1i8; 4];
+    assert_eq!(ops::quantize_symmetric(&[0.0; 4], &mut zeros), 1.0);
+    assert_eq!(zeros, [0; 4]);
+    // Non-finite input must not be hidden: the scale carries the NaN into the result.
+    assert!(ops::quantize_symmetric(&[1.0, f32::NAN, 2.0], &mut [0; 3]).is_nan());
+    assert!(ops::quantize_symmetric(&[1.0, f32::INFINITY], &mut [0; 2]).is_nan());
+}

@@ -13,7 +13,7 @@ const CONFIG: ModelConfig = ModelConfig::TINY;
 
 fn tiny_weights() -> AlignedBytes {
     let state_dict = synth_state_dict(&CONFIG, 1);
-    let bytes = weights_tool::lower::lower_to_weights_file(&CONFIG, &state_dict, Quant::F32)
+    let bytes = weights_tool::lowering::lower_to_weights_file(&CONFIG, &state_dict, Quant::F32)
         .expect("the tiny model lowers");
     aligned_copy(&bytes)
 }

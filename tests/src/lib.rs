@@ -132,8 +132,17 @@ fn glob_safetensors(dir: &Path) -> Vec<PathBuf> {
 
 /// Seeded synthetic weights, converted by the weights tool exactly as `convert` does.
 pub fn synthetic_weights_file(config: &ModelConfig, seed: u64) -> Result<AlignedBytes> {
+    synthetic_weights_file_as(config, seed, weights_tool::Quant::F32)
+}
+
+/// [`synthetic_weights_file`] at a chosen storage precision.
+pub fn synthetic_weights_file_as(
+    config: &ModelConfig,
+    seed: u64,
+    quant: weights_tool::Quant,
+) -> Result<AlignedBytes> {
     let state = weights_tool::synth::synth_state_dict(config, seed);
-    let bytes = weights_tool::lowering::weights_file(config, &state)?;
+    let bytes = weights_tool::lowering::lower_to_weights_file(config, &state, quant)?;
     Ok(weights_tool::writer::aligned_copy(&bytes))
 }
 

@@ -2,13 +2,12 @@
 //!
 //! The pipeline of `weights-tool convert`: [`checkpoint::load_checkpoint`] ->
 //! [`remap::remap_keys`] -> [`keys::check_keys`] against [`keys::expected_keys`] ->
-//! [`lower::lower_to_weights_file`].
+//! [`lowering::lower_to_weights_file`].
 
 pub mod checkpoint;
 pub mod config;
 pub mod inspect;
 pub mod keys;
-pub mod lower;
 pub mod lowering;
 pub mod quant;
 pub mod remap;

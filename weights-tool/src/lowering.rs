@@ -14,6 +14,9 @@ use std::collections::BTreeMap;
 use anyhow::{Context, Result, bail, ensure};
 use scdp_engine::config::{BackboneNorm, ModelConfig, UNET_LEVELS};
 
+use crate::quant::Quant;
+use crate::writer::Stored;
+
 /// A PyTorch tensor as the lowering reads it: shape and row-major values.
 pub struct TensorRef<'a> {
     pub shape: &'a [usize],
@@ -568,7 +571,101 @@ impl StateDictLookup for crate::state_dict::StateDict {
     }
 }
 
-/// Lowers a state dict and writes the weights file bytes.
-pub fn weights_file(config: &ModelConfig, state: &impl StateDictLookup) -> Result<Vec<u8>> {
-    crate::writer::write_weights_file(config, &lower(config, state)?)
+/// Weights the int8 mode still stores in f32, and why (measured with
+/// `cargo test -p scdp-tests --test int8_fidelity -- --nocapture`; see docs/QUANTIZATION.md).
+pub const INT8_KEEP_F32: &[(&str, &str)] = &[
+    (
+        "backbone.conv1.weight",
+        "the stem reads the raw image: 9k weights, and its error would reach every feature",
+    ),
+    (
+        "unet.final.projection.weight",
+        "the predicted noise itself: 1k weights, its error goes straight into every DDIM step",
+    ),
+];
+
+/// Symmetric int8 with one scale per channel: `scale = max |w| / 127` over the channel,
+/// `q = round(w / scale)`. Channels are the last axis (convolutions, `[.., out]`) or, with
+/// `rows`, the first (FiLM matrices, one row per output).
+fn quantize_per_channel(values: &[f32], channels: usize, rows: bool) -> Stored {
+    let per_channel = values.len() / channels;
+    let channel_of = |index: usize| {
+        if rows {
+            index / per_channel
+        } else {
+            index % channels
+        }
+    };
+    let mut largest = vec![0.0f32; channels];
+    for (index, &value) in values.iter().enumerate() {
+        let channel = channel_of(index);
+        largest[channel] = largest[channel].max(value.abs());
+    }
+    // An all-zero channel keeps scale 1 (its values quantize to 0 either way).
+    let scales: Vec<f32> = largest
+        .iter()
+        .map(|&m| if m > 0.0 { m / 127.0 } else { 1.0 })
+        .collect();
+    let quantized = values
+        .iter()
+        .enumerate()
+        .map(|(index, &value)| {
+            (value as f64 / scales[channel_of(index)] as f64)
+                .round()
+                .clamp(-127.0, 127.0) as i8
+        })
+        .collect();
+    Stored::Int8 {
+        values: quantized,
+        scales,
+    }
+}
+
+/// Chooses each tensor's storage: everything f32, or int8 for every weight the engine can
+/// take as int8 except [`INT8_KEEP_F32`].
+pub fn store(
+    config: &ModelConfig,
+    lowered: Lowered,
+    quant: Quant,
+) -> Result<BTreeMap<String, Stored>> {
+    store_keeping(config, lowered, quant, |name| {
+        INT8_KEEP_F32.iter().any(|(kept, _)| *kept == name)
+    })
+}
+
+/// [`store`] with a custom choice of the weights kept in f32 in int8 mode (for measuring
+/// which layers need it).
+pub fn store_keeping(
+    config: &ModelConfig,
+    lowered: Lowered,
+    quant: Quant,
+    keep_f32: impl Fn(&str) -> bool,
+) -> Result<BTreeMap<String, Stored>> {
+    let specs = crate::writer::tensor_specs(config)?;
+    let mut stored = BTreeMap::new();
+    for (name, values) in lowered {
+        let int8_channels = specs
+            .iter()
+            .find(|spec| spec.name == name)
+            .and_then(|spec| spec.int8_scales.as_ref().map(|(_, channels)| *channels));
+        let keep = keep_f32(&name);
+        let tensor = match (quant, int8_channels) {
+            (Quant::Int8, Some(channels)) if !keep => {
+                quantize_per_channel(&values, channels, name.ends_with(".film.weight"))
+            }
+            _ => Stored::F32(values),
+        };
+        stored.insert(name, tensor);
+    }
+    Ok(stored)
+}
+
+/// The weights file for `config` holding `state` (a state dict that passed
+/// [`crate::keys::check_keys`]) at precision `quant`.
+pub fn lower_to_weights_file(
+    config: &ModelConfig,
+    state: &impl StateDictLookup,
+    quant: Quant,
+) -> Result<Vec<u8>> {
+    crate::writer::write_weights_file(config, &store(config, lower(config, state)?, quant)?)
 }

@@ -180,7 +180,7 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
 
     let quant = Quant::from(args.quant);
     let spinner = spinner(&format!("converting to {quant}"));
-    let bytes = weights_tool::lower::lower_to_weights_file(&config, &state_dict, quant);
+    let bytes = weights_tool::lowering::lower_to_weights_file(&config, &state_dict, quant);
     spinner.finish_and_clear();
     let bytes = bytes.with_context(|| format!("converting {}", args.checkpoint.display()))?;
     std::fs::write(&args.output, &bytes)
@@ -189,6 +189,14 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
     println!("wrote {}", args.output.display());
     println!("  weights used   {}", state_dict.source);
     println!("  storage        {quant}");
+    if quant == Quant::Int8 {
+        println!(
+            "  int8 scheme    trunk: int8 weights x int8 activations (a scale per pixel); U-Net: int8 weights, f32 activations"
+        );
+        for (name, why) in weights_tool::lowering::INT8_KEEP_F32 {
+            println!("  kept f32       {name}: {why}");
+        }
+    }
     println!("  parameters     {}", state_dict.numel());
     println!(
         "  file           {} bytes ({:.1} MiB)",

@@ -9,16 +9,30 @@ use anyhow::{Result, bail, ensure};
 use scdp_engine::Error as EngineError;
 use scdp_engine::config::ModelConfig;
 use scdp_engine::format::{
-    self, ALIGN, CHECKSUM_RANGE, CONFIG_BYTES, ENTRY_BYTES, HEADER_BYTES, MAGIC, NAME_BYTES, Quant,
-    VERSION,
+    self, ALIGN, CHECKSUM_RANGE, CONFIG_BYTES, DType, ENTRY_BYTES, HEADER_BYTES, MAGIC, NAME_BYTES,
+    Quant, VERSION,
 };
-use scdp_engine::weights::{ModelWeights, TensorSource};
+use scdp_engine::weights::{ModelWeights, TensorSource, Weight};
 
 /// One tensor the engine will ask for, in order.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct TensorSpec {
     pub name: String,
     pub dims: Vec<usize>,
+    /// For weight matrices and kernels, which may be stored as int8: the name of the scale
+    /// tensor that then follows, and how many scales (output channels) it has.
+    pub int8_scales: Option<(String, usize)>,
+}
+
+/// A tensor as it will be stored.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Stored {
+    F32(Vec<f32>),
+    /// Symmetric int8 with one scale per output channel.
+    Int8 {
+        values: Vec<i8>,
+        scales: Vec<f32>,
+    },
 }
 
 /// Records the names and shapes the engine's binder requests.
@@ -33,8 +47,24 @@ impl TensorSource<'static> for Recorder {
         self.0.push(TensorSpec {
             name: name.to_string(),
             dims: dims.to_vec(),
+            int8_scales: None,
         });
         Ok(&[])
+    }
+
+    fn weight(
+        &mut self,
+        name: fmt::Arguments<'_>,
+        scale_name: fmt::Arguments<'_>,
+        dims: &[usize],
+        channels: usize,
+    ) -> Result<Weight<'static>, EngineError> {
+        self.0.push(TensorSpec {
+            name: name.to_string(),
+            dims: dims.to_vec(),
+            int8_scales: Some((scale_name.to_string(), channels)),
+        });
+        Ok(Weight::F32(&[]))
     }
 }
 
@@ -50,10 +80,18 @@ fn align(offset: usize) -> usize {
     offset.div_ceil(ALIGN) * ALIGN
 }
 
-/// Serializes lowered tensors (engine name -> values) into a weights file.
+/// One table entry and its data, before offsets are assigned.
+struct Entry<'a> {
+    name: &'a str,
+    dims: Vec<usize>,
+    dtype: DType,
+    bytes: Vec<u8>,
+}
+
+/// Serializes stored tensors (engine name -> data) into a weights file.
 pub fn write_weights_file(
     config: &ModelConfig,
-    tensors: &BTreeMap<String, Vec<f32>>,
+    tensors: &BTreeMap<String, Stored>,
 ) -> Result<Vec<u8>> {
     let specs = tensor_specs(config)?;
     let mut unused: Vec<&String> = tensors
@@ -64,42 +102,81 @@ pub fn write_weights_file(
         unused.sort();
         bail!("internal: lowered tensors the engine does not read: {unused:?}");
     }
-    let table_offset = HEADER_BYTES + CONFIG_BYTES;
-    let mut offset = align(table_offset + specs.len() * ENTRY_BYTES);
-    let mut table = Vec::with_capacity(specs.len() * ENTRY_BYTES);
-    let mut placements = Vec::with_capacity(specs.len());
+    let mut entries = Vec::with_capacity(specs.len());
+    let mut any_int8 = false;
     for spec in &specs {
-        let Some(values) = tensors.get(&spec.name) else {
+        let Some(stored) = tensors.get(&spec.name) else {
             bail!("internal: no lowered tensor `{}`", spec.name);
         };
         let elements: usize = spec.dims.iter().product();
-        ensure!(
-            values.len() == elements,
-            "internal: `{}` has {} values, the engine expects {:?}",
-            spec.name,
-            values.len(),
-            spec.dims
-        );
-        ensure!(
-            spec.name.len() <= NAME_BYTES,
-            "internal: name `{}` too long",
-            spec.name
-        );
-        let mut entry = [0u8; ENTRY_BYTES];
-        entry[..spec.name.len()].copy_from_slice(spec.name.as_bytes());
-        entry[56..60].copy_from_slice(&(format::DType::F32 as u32).to_le_bytes());
-        entry[60..64].copy_from_slice(&(spec.dims.len() as u32).to_le_bytes());
-        for (axis, &dim) in spec.dims.iter().enumerate() {
-            entry[64 + 4 * axis..68 + 4 * axis].copy_from_slice(&u32::try_from(dim)?.to_le_bytes());
+        match stored {
+            Stored::F32(values) => {
+                ensure!(
+                    values.len() == elements,
+                    "internal: `{}` has {} values, the engine expects {:?}",
+                    spec.name,
+                    values.len(),
+                    spec.dims
+                );
+                entries.push(Entry {
+                    name: &spec.name,
+                    dims: spec.dims.clone(),
+                    dtype: DType::F32,
+                    bytes: values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+                });
+            }
+            Stored::Int8 { values, scales } => {
+                let Some((scale_name, channels)) = &spec.int8_scales else {
+                    bail!("internal: `{}` cannot be stored as int8", spec.name);
+                };
+                ensure!(
+                    values.len() == elements && scales.len() == *channels,
+                    "internal: int8 `{}` does not match {:?}",
+                    spec.name,
+                    spec.dims
+                );
+                any_int8 = true;
+                entries.push(Entry {
+                    name: &spec.name,
+                    dims: spec.dims.clone(),
+                    dtype: DType::I8,
+                    bytes: values.iter().map(|&v| v as u8).collect(),
+                });
+                entries.push(Entry {
+                    name: scale_name,
+                    dims: vec![*channels],
+                    dtype: DType::F32,
+                    bytes: scales.iter().flat_map(|v| v.to_le_bytes()).collect(),
+                });
+            }
         }
-        let byte_len = values.len() * 4;
-        entry[80..88].copy_from_slice(&(offset as u64).to_le_bytes());
-        entry[88..96].copy_from_slice(&(byte_len as u64).to_le_bytes());
-        table.extend_from_slice(&entry);
-        placements.push((offset, values));
-        offset = align(offset + byte_len);
+    }
+
+    let table_offset = HEADER_BYTES + CONFIG_BYTES;
+    let mut offset = align(table_offset + entries.len() * ENTRY_BYTES);
+    let mut table = Vec::with_capacity(entries.len() * ENTRY_BYTES);
+    let mut placements = Vec::with_capacity(entries.len());
+    for entry in &entries {
+        ensure!(
+            entry.name.len() <= NAME_BYTES,
+            "internal: name `{}` too long",
+            entry.name
+        );
+        let mut row = [0u8; ENTRY_BYTES];
+        row[..entry.name.len()].copy_from_slice(entry.name.as_bytes());
+        row[56..60].copy_from_slice(&(entry.dtype as u32).to_le_bytes());
+        row[60..64].copy_from_slice(&(entry.dims.len() as u32).to_le_bytes());
+        for (axis, &dim) in entry.dims.iter().enumerate() {
+            row[64 + 4 * axis..68 + 4 * axis].copy_from_slice(&u32::try_from(dim)?.to_le_bytes());
+        }
+        row[80..88].copy_from_slice(&(offset as u64).to_le_bytes());
+        row[88..96].copy_from_slice(&(entry.bytes.len() as u64).to_le_bytes());
+        table.extend_from_slice(&row);
+        placements.push((offset, &entry.bytes));
+        offset = align(offset + entry.bytes.len());
     }
     let file_len = offset;
+    let quant = if any_int8 { Quant::Int8 } else { Quant::F32 };
     let mut bytes = vec![0u8; file_len];
     bytes[..8].copy_from_slice(&MAGIC);
     bytes[8..12].copy_from_slice(&VERSION.to_le_bytes());
@@ -108,18 +185,13 @@ pub fn write_weights_file(
     bytes[32..36].copy_from_slice(&(HEADER_BYTES as u32).to_le_bytes());
     bytes[36..40].copy_from_slice(&(CONFIG_BYTES as u32).to_le_bytes());
     bytes[40..44].copy_from_slice(&(table_offset as u32).to_le_bytes());
-    bytes[44..48].copy_from_slice(&(specs.len() as u32).to_le_bytes());
-    bytes[48..52].copy_from_slice(&(Quant::F32 as u32).to_le_bytes());
+    bytes[44..48].copy_from_slice(&(entries.len() as u32).to_le_bytes());
+    bytes[48..52].copy_from_slice(&(quant as u32).to_le_bytes());
     bytes[HEADER_BYTES..HEADER_BYTES + CONFIG_BYTES]
         .copy_from_slice(&format::encode_config(config));
     bytes[table_offset..table_offset + table.len()].copy_from_slice(&table);
-    for (at, values) in placements {
-        for (chunk, value) in bytes[at..at + values.len() * 4]
-            .chunks_exact_mut(4)
-            .zip(values)
-        {
-            chunk.copy_from_slice(&value.to_le_bytes());
-        }
+    for (at, data) in placements {
+        bytes[at..at + data.len()].copy_from_slice(data);
     }
     let checksum = format::checksum(&bytes);
     bytes[CHECKSUM_RANGE].copy_from_slice(&checksum.to_le_bytes());
@@ -127,7 +199,7 @@ pub fn write_weights_file(
 }
 
 /// Copies `bytes` into a 64-byte aligned buffer, as the engine requires (a `Vec<u8>` only
-/// guarantees byte alignment). Returns the buffer and the offset where the copy starts.
+/// guarantees byte alignment).
 pub fn aligned_copy(bytes: &[u8]) -> AlignedBytes {
     let mut storage = vec![0u8; bytes.len() + ALIGN];
     let start = storage.as_ptr().align_offset(ALIGN);

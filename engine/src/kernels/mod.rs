@@ -7,6 +7,8 @@
 pub mod ops;
 pub mod scalar;
 
+use crate::weights::Weight;
+
 /// Shape of a 2-D convolution over channels-last maps (`[H, W, C]`), weights packed
 /// `[kernel_height, kernel_width, in_channels, out_channels]`. A 1-D convolution over
 /// `[T, C]` is the same with height 1.
@@ -138,4 +140,133 @@ pub trait Kernels: Sync {
 
     /// `output[r] = base[r] + sum_c weight[r, c] input[c]` for a row-major `[rows, cols]`.
     fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]);
+
+    /// [`conv`](Self::conv) on int8 data with one activation scale per input position. For
+    /// each output position and kernel tap, the integer sum `p[o] = sum_c q_in[c] q_w[c, o]`
+    /// is exact in i32 (the part every implementation must reproduce bit for bit); then
+    /// `acc[o] += p[o] as f32 * row_scale(tap's input position)` over the taps in kernel
+    /// order, and `output[o] (+)= acc[o] * weight_scales[o] + bias[o]`.
+    #[allow(clippy::too_many_arguments)]
+    fn conv_int8(
+        &self,
+        shape: &ConvShape,
+        input: &QuantizedRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    );
+
+    /// [`conv`](Self::conv) with int8 weights and f32 activations (weight-only quantization):
+    /// `acc[o] = sum x * (q_w as f32)` in f32, then `output[o] (+)= acc[o] * weight_scales[o]
+    /// + bias[o]`. For memory-bound layers, where int8 activations would only add error.
+    #[allow(clippy::too_many_arguments)]
+    fn conv_weight_int8(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    );
+
+    /// [`matvec`](Self::matvec) with int8 weights, one scale per row, f32 input:
+    /// `output[r] = base[r] + (sum_c (q_w[r, c] as f32) input[c]) * row_scales[r]`.
+    fn matvec_weight_int8(
+        &self,
+        weight: &[i8],
+        row_scales: &[f32],
+        input: &[f32],
+        base: &[f32],
+        output: &mut [f32],
+    );
+}
+
+/// Activations quantized for an int8 kernel, one symmetric scale per row (a pixel's or a
+/// timestep's channels): `value[r, c] ~ values[r, c] * scales[r]`.
+#[derive(Clone, Copy, Debug)]
+pub struct QuantizedRows<'a> {
+    pub values: &'a [i8],
+    pub scales: &'a [f32],
+}
+
+/// Arena space for quantizing one layer input: values and one scale per row.
+#[derive(Debug)]
+pub struct QuantizeScratch<'a> {
+    pub values: &'a mut [i8],
+    pub scales: &'a mut [f32],
+}
+
+impl QuantizeScratch<'_> {
+    /// Quantizes `input`, rows of `row_len` values (the activation scheme of int8 weights
+    /// files: symmetric, scale = max |x| / 127 per row), and returns the view.
+    pub fn quantize(&mut self, input: &[f32], row_len: usize) -> QuantizedRows<'_> {
+        let rows = input.len() / row_len;
+        let values = &mut self.values[..input.len()];
+        let scales = &mut self.scales[..rows];
+        for ((row, out), scale) in input
+            .chunks_exact(row_len)
+            .zip(values.chunks_exact_mut(row_len))
+            .zip(scales.iter_mut())
+        {
+            *scale = ops::quantize_symmetric(row, out);
+        }
+        QuantizedRows { values, scales }
+    }
+}
+
+/// How a layer with int8 weights treats its input.
+#[derive(Debug)]
+pub enum Activations<'s, 'a> {
+    /// Quantized to int8 per row (pixel), integer dot products: the compute-bound trunk.
+    Int8(&'s mut QuantizeScratch<'a>),
+    /// Kept in f32, weights widened on the fly: the memory-bound U-Net, where int8
+    /// activations would add error and save no time.
+    F32,
+}
+
+/// A convolution with whichever weights the file holds.
+#[allow(clippy::too_many_arguments)]
+pub fn convolve(
+    kernels: &dyn Kernels,
+    shape: &ConvShape,
+    input: &[f32],
+    weight: &Weight<'_>,
+    bias: &[f32],
+    output: &mut [f32],
+    accumulate: Accumulate,
+    activations: Activations<'_, '_>,
+) {
+    let input = &input[..shape.input_len()];
+    let output = &mut output[..shape.output_len()];
+    match (*weight, activations) {
+        (Weight::F32(values), _) => kernels.conv(shape, input, values, bias, output, accumulate),
+        (Weight::Int8 { values, scales }, Activations::Int8(scratch)) => {
+            let input = scratch.quantize(input, shape.in_channels);
+            kernels.conv_int8(shape, &input, values, scales, bias, output, accumulate);
+        }
+        (Weight::Int8 { values, scales }, Activations::F32) => {
+            kernels.conv_weight_int8(shape, input, values, scales, bias, output, accumulate)
+        }
+    }
+}
+
+/// `output = base + W input` with whichever weights the file holds (int8 weights are
+/// weight-only: the input stays f32).
+pub fn linear(
+    kernels: &dyn Kernels,
+    weight: &Weight<'_>,
+    input: &[f32],
+    base: &[f32],
+    output: &mut [f32],
+) {
+    match *weight {
+        Weight::F32(values) => kernels.matvec(values, input, base, output),
+        Weight::Int8 { values, scales } => {
+            kernels.matvec_weight_int8(values, scales, input, base, output)
+        }
+    }
 }

@@ -126,3 +126,30 @@ pub fn add_activate(target: &mut [f32], source: &[f32], activation: Activation) 
         *t = activate(*t + s, activation);
     }
 }
+
+/// Symmetric per-tensor int8 quantization: `scale = max |x| / 127`,
+/// `q = round(x / scale)` (ties away from zero) in [-127, 127]. Returns the scale: 1 for an
+/// all-zero input, NaN when the input holds NaN or infinity (so the NaN reaches the result
+/// and the engine reports it instead of acting on it).
+pub fn quantize_symmetric(input: &[f32], output: &mut [i8]) -> f32 {
+    let largest = input.iter().fold(0.0f32, |m, &x| {
+        if x.abs() > m || x.is_nan() {
+            x.abs()
+        } else {
+            m
+        }
+    });
+    if !largest.is_finite() {
+        output.fill(0);
+        return f32::NAN;
+    }
+    if largest == 0.0 {
+        output.fill(0);
+        return 1.0;
+    }
+    let inverse = 127.0 / largest;
+    for (q, &x) in output.iter_mut().zip(input) {
+        *q = libm::roundf(x * inverse).clamp(-127.0, 127.0) as i8;
+    }
+    largest / 127.0
+}

@@ -1,7 +1,10 @@
 //! The reference implementation of [`Kernels`]: plain loops, written for clarity. Faster
 //! implementations are tested against it.
 
-use super::{Accumulate, ConvShape, Kernels};
+use super::{Accumulate, ConvShape, Kernels, QuantizedRows};
+
+/// Output channels accumulated at once in the int8 kernels (an i32 block on the stack).
+const INT8_BLOCK: usize = 128;
 
 /// Portable scalar kernels (the compiler may still auto-vectorise the inner loops).
 pub struct Scalar;
@@ -114,6 +117,181 @@ impl Kernels for Scalar {
             .zip(base)
         {
             *out = start + row.iter().zip(input).map(|(w, x)| w * x).sum::<f32>();
+        }
+    }
+
+    fn conv_int8(
+        &self,
+        shape: &ConvShape,
+        input: &QuantizedRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let out_width = shape.out_width();
+        let in_channels = shape.in_channels;
+        let out_channels = shape.out_channels;
+        assert_eq!(input.values.len(), shape.input_len());
+        assert_eq!(input.scales.len(), shape.in_height * shape.in_width);
+        assert_eq!(weight.len(), shape.weight_len());
+        assert_eq!(weight_scales.len(), out_channels);
+        assert_eq!(bias.len(), out_channels);
+        assert_eq!(output.len(), shape.output_len());
+        for (position, out) in output.chunks_exact_mut(out_channels).enumerate() {
+            let out_y = position / out_width;
+            let out_x = position % out_width;
+            for block in (0..out_channels).step_by(INT8_BLOCK) {
+                let width = (out_channels - block).min(INT8_BLOCK);
+                let mut totals = [0.0f32; INT8_BLOCK];
+                let totals = &mut totals[..width];
+                for kernel_y in 0..shape.kernel_height {
+                    let Some(in_y) =
+                        (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height)
+                    else {
+                        continue;
+                    };
+                    if in_y >= shape.in_height {
+                        continue;
+                    }
+                    for kernel_x in 0..shape.kernel_width {
+                        let Some(in_x) =
+                            (out_x * shape.stride + kernel_x).checked_sub(shape.padding_width)
+                        else {
+                            continue;
+                        };
+                        if in_x >= shape.in_width {
+                            continue;
+                        }
+                        let row = in_y * shape.in_width + in_x;
+                        let pixel = &input.values[row * in_channels..][..in_channels];
+                        let taps = &weight[(kernel_y * shape.kernel_width + kernel_x)
+                            * in_channels
+                            * out_channels..][..in_channels * out_channels];
+                        let mut sums = [0i32; INT8_BLOCK];
+                        let sums = &mut sums[..width];
+                        for (&value, weights) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
+                            let value = value as i32;
+                            for (sum, &w) in sums.iter_mut().zip(&weights[block..block + width]) {
+                                *sum += value * w as i32;
+                            }
+                        }
+                        let scale = input.scales[row];
+                        for (total, &sum) in totals.iter_mut().zip(sums.iter()) {
+                            *total += sum as f32 * scale;
+                        }
+                    }
+                }
+                let out = &mut out[block..block + width];
+                for (((o, &total), &scale), &b) in out
+                    .iter_mut()
+                    .zip(totals.iter())
+                    .zip(&weight_scales[block..block + width])
+                    .zip(&bias[block..block + width])
+                {
+                    let value = total * scale + b;
+                    match accumulate {
+                        Accumulate::Overwrite => *o = value,
+                        Accumulate::Add => *o += value,
+                    }
+                }
+            }
+        }
+    }
+
+    fn conv_weight_int8(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let out_width = shape.out_width();
+        let in_channels = shape.in_channels;
+        let out_channels = shape.out_channels;
+        assert_eq!(input.len(), shape.input_len());
+        assert_eq!(weight.len(), shape.weight_len());
+        assert_eq!(weight_scales.len(), out_channels);
+        assert_eq!(bias.len(), out_channels);
+        assert_eq!(output.len(), shape.output_len());
+        for (position, out) in output.chunks_exact_mut(out_channels).enumerate() {
+            let out_y = position / out_width;
+            let out_x = position % out_width;
+            for block in (0..out_channels).step_by(INT8_BLOCK) {
+                let width = (out_channels - block).min(INT8_BLOCK);
+                let mut totals = [0.0f32; INT8_BLOCK];
+                let totals = &mut totals[..width];
+                for kernel_y in 0..shape.kernel_height {
+                    let Some(in_y) =
+                        (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height)
+                    else {
+                        continue;
+                    };
+                    if in_y >= shape.in_height {
+                        continue;
+                    }
+                    for kernel_x in 0..shape.kernel_width {
+                        let Some(in_x) =
+                            (out_x * shape.stride + kernel_x).checked_sub(shape.padding_width)
+                        else {
+                            continue;
+                        };
+                        if in_x >= shape.in_width {
+                            continue;
+                        }
+                        let pixel =
+                            &input[(in_y * shape.in_width + in_x) * in_channels..][..in_channels];
+                        let taps = &weight[(kernel_y * shape.kernel_width + kernel_x)
+                            * in_channels
+                            * out_channels..][..in_channels * out_channels];
+                        for (&value, weights) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
+                            for (total, &w) in totals.iter_mut().zip(&weights[block..block + width])
+                            {
+                                *total += value * w as f32;
+                            }
+                        }
+                    }
+                }
+                let out = &mut out[block..block + width];
+                for (((o, &total), &scale), &b) in out
+                    .iter_mut()
+                    .zip(totals.iter())
+                    .zip(&weight_scales[block..block + width])
+                    .zip(&bias[block..block + width])
+                {
+                    let value = total * scale + b;
+                    match accumulate {
+                        Accumulate::Overwrite => *o = value,
+                        Accumulate::Add => *o += value,
+                    }
+                }
+            }
+        }
+    }
+
+    fn matvec_weight_int8(
+        &self,
+        weight: &[i8],
+        row_scales: &[f32],
+        input: &[f32],
+        base: &[f32],
+        output: &mut [f32],
+    ) {
+        assert_eq!(weight.len(), output.len() * input.len());
+        assert_eq!(row_scales.len(), output.len());
+        assert_eq!(base.len(), output.len());
+        for (((out, row), &scale), &start) in output
+            .iter_mut()
+            .zip(weight.chunks_exact(input.len()))
+            .zip(row_scales)
+            .zip(base)
+        {
+            let sum: f32 = row.iter().zip(input).map(|(&w, &x)| w as f32 * x).sum();
+            *out = start + sum * scale;
         }
     }
 }

@@ -84,7 +84,7 @@ fn load_weights(cli: &Cli, config: &ModelConfig) -> anyhow::Result<(AlignedBytes
     }
     let started = Instant::now();
     let state_dict = synth_state_dict(config, cli.seed);
-    let bytes = weights_tool::lower::lower_to_weights_file(config, &state_dict, Quant::F32)?;
+    let bytes = weights_tool::lowering::lower_to_weights_file(config, &state_dict, Quant::F32)?;
     let description = format!(
         "synthetic, seed {}, generated in {:.2} s",
         cli.seed,
