@@ -96,6 +96,8 @@ pub enum Error {
     ArenaTooSmall { needed: usize, found: usize },
     /// The arena does not start at a 64-byte boundary.
     MisalignedArena,
+    /// The requested kernel backend cannot run on this CPU.
+    BackendUnavailable,
     /// An image of the wrong byte length for `image_height x image_width x 3`.
     ImageSize { expected: usize, found: usize },
     /// A state vector of the wrong length.
@@ -149,6 +151,9 @@ impl fmt::Display for Error {
                 write!(f, "arena has {found} bytes; the plan needs {needed}")
             }
             Self::MisalignedArena => f.write_str("arena is not 64-byte aligned"),
+            Self::BackendUnavailable => {
+                f.write_str("the requested kernel backend cannot run on this CPU")
+            }
             Self::ImageSize { expected, found } => {
                 write!(
                     f,

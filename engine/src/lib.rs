@@ -50,5 +50,6 @@ pub mod weights;
 pub use anchors::Camera;
 pub use config::{BackboneNorm, ModelConfig};
 pub use error::{ConfigError, Error};
+pub use kernels::Backend;
 pub use plan::{Aligned, Arena, ArenaPlan};
 pub use policy::{Actions, Model, NoObserver, Noise, Observer, Policy};

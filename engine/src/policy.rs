@@ -8,8 +8,7 @@ use crate::error::Error;
 use crate::format::WeightsFile;
 use crate::frame;
 use crate::kernels::ops::mish;
-use crate::kernels::scalar::Scalar;
-use crate::kernels::{Kernels, QuantizeScratch};
+use crate::kernels::{self, Backend, Kernels, QuantizeScratch};
 use crate::plan::{ArenaPlan, Carver};
 use crate::pyramid::{self, TrunkScratch};
 use crate::rng::NoiseRng;
@@ -113,8 +112,20 @@ pub struct Policy<'w, 'a> {
 }
 
 impl<'w, 'a> Policy<'w, 'a> {
-    /// Checks `arena` (64-byte aligned, at least [`ArenaPlan::arena_bytes`]) for the model.
+    /// Checks `arena` (64-byte aligned, at least [`ArenaPlan::arena_bytes`]) for the model;
+    /// runs the fastest kernels this CPU supports.
     pub fn new(model: &'w Model<'w>, arena: &'a mut [u8]) -> Result<Self, Error> {
+        Self::with_backend(model, arena, Backend::Auto)
+    }
+
+    /// [`new`](Self::new) with a chosen kernel implementation (tests force each one);
+    /// [`Error::BackendUnavailable`] if this CPU cannot run it.
+    pub fn with_backend(
+        model: &'w Model<'w>,
+        arena: &'a mut [u8],
+        backend: Backend,
+    ) -> Result<Self, Error> {
+        let kernels = kernels::select(backend).ok_or(Error::BackendUnavailable)?;
         let plan = ArenaPlan::new(model.config());
         if arena.len() < plan.arena_bytes {
             return Err(Error::ArenaTooSmall {
@@ -132,7 +143,7 @@ impl<'w, 'a> Policy<'w, 'a> {
             model,
             plan,
             arena,
-            kernels: &Scalar,
+            kernels,
             camera: None,
             newest: 0,
             has_observation: false,

@@ -2,6 +2,7 @@
 //! tensors, PyTorch weight layouts, f64 accumulation), on random shapes. Tolerance: 1e-5
 //! relative to the sum of |terms|, the bound for f32 accumulation of up to ~5000 products.
 
+use scdp_engine::Backend;
 use scdp_engine::kernels::ops::{self, Activation};
 use scdp_engine::kernels::scalar::Scalar;
 use scdp_engine::kernels::{Accumulate, ConvShape, Kernels};
@@ -111,20 +112,54 @@ fn assert_close(found: &[f32], expected: &[f64], magnitude: &[f64], what: &str) 
     }
 }
 
+/// Every implementation this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2` (as CI sets it) makes
+/// a missing backend a failure instead of a silent skip.
+fn backends() -> Vec<(&'static str, &'static dyn Kernels)> {
+    let mut found = Vec::new();
+    for (name, backend) in [("scalar", Backend::Scalar), ("avx2", Backend::Avx2)] {
+        if let Some(kernels) = scdp_engine::kernels::select(backend) {
+            assert_eq!(
+                kernels.name(),
+                name,
+                "select({backend:?}) gave another backend"
+            );
+            found.push((name, kernels));
+        }
+    }
+    let required = std::env::var("SCDP_REQUIRE_BACKENDS").unwrap_or_default();
+    for name in required.split(',').filter(|n| !n.is_empty()) {
+        assert!(
+            found.iter().any(|(n, _)| *n == name),
+            "backend {name} is required but this CPU cannot run it"
+        );
+    }
+    found
+}
+
 #[test]
 fn convolution_matches_pytorch_definition_on_random_shapes() {
+    for (name, kernels) in backends() {
+        convolution_matches_pytorch_definition(name, kernels);
+    }
+}
+
+fn convolution_matches_pytorch_definition(backend: &str, kernels: &dyn Kernels) {
     let mut rng = Lcg(7);
-    let kernels: &dyn Kernels = &Scalar;
-    for case in 0..60 {
+    for case in 0..80 {
         let kernel = [1, 3, 5, 7][rng.below(4)];
         let one_dimensional = case % 3 == 0;
         let stride = 1 + rng.below(2);
         let padding = rng.below(kernel / 2 + 1);
         let in_channels = 1 + rng.below(9);
-        let out_channels = 1 + rng.below(11);
+        // Multiples of 16 reach the SIMD tiles; the rest their fallbacks.
+        let out_channels = if case % 2 == 0 {
+            16 * (1 + rng.below(3))
+        } else {
+            1 + rng.below(11)
+        };
         let shape = if one_dimensional {
             ConvShape::sequence(
-                kernel + rng.below(9),
+                kernel + rng.below(20),
                 in_channels,
                 out_channels,
                 kernel,
@@ -133,7 +168,7 @@ fn convolution_matches_pytorch_definition_on_random_shapes() {
             )
         } else {
             ConvShape::square(
-                (kernel + rng.below(7), kernel + rng.below(8), in_channels),
+                (kernel + rng.below(7), kernel + rng.below(16), in_channels),
                 out_channels,
                 kernel,
                 stride,
@@ -165,7 +200,7 @@ fn convolution_matches_pytorch_definition_on_random_shapes() {
             &output,
             &expected,
             &magnitude,
-            &format!("case {case} {shape:?}"),
+            &format!("{backend} case {case} {shape:?}"),
         );
 
         // Accumulate adds exactly the same convolution on top of what is there.
@@ -188,7 +223,7 @@ fn convolution_matches_pytorch_definition_on_random_shapes() {
             &accumulated,
             &expected_sum,
             &magnitude,
-            &format!("accumulate case {case}"),
+            &format!("{backend} accumulate case {case}"),
         );
     }
 }

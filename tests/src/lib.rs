@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use safetensors::{Dtype, SafeTensors};
-use scdp_engine::{Camera, Model, ModelConfig, Noise, Observer, Policy};
+use scdp_engine::{Backend, Camera, Model, ModelConfig, Noise, Observer, Policy};
 use weights_tool::writer::AlignedBytes;
 
 /// The repository's `tests/` folder.
@@ -108,6 +108,25 @@ impl Fixture {
     }
 }
 
+/// The kernel backends this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2` (as CI sets it)
+/// turns a missing backend into a failure instead of a silent skip.
+pub fn available_backends() -> Vec<Backend> {
+    let mut found = vec![Backend::Scalar];
+    if scdp_engine::kernels::select(Backend::Avx2).is_some() {
+        found.push(Backend::Avx2);
+    }
+    let required = std::env::var("SCDP_REQUIRE_BACKENDS").unwrap_or_default();
+    for name in required.split(',').filter(|n| !n.is_empty()) {
+        assert!(
+            found
+                .iter()
+                .any(|b| scdp_engine::kernels::select(*b).is_some_and(|k| k.name() == name)),
+            "backend {name} is required but this CPU cannot run it"
+        );
+    }
+    found
+}
+
 /// Every golden fixture, sorted, optionally only those of one config folder.
 pub fn golden_fixtures() -> Vec<PathBuf> {
     let mut paths: Vec<PathBuf> = glob_safetensors(&tests_dir().join("fixtures/golden"));
@@ -180,14 +199,26 @@ pub struct EngineRun {
     pub feature_maps: Vec<Vec<Vec<f32>>>,
 }
 
-/// Runs a weights file on a fixture's inputs: frames pushed oldest first, the given noise.
+/// Runs a weights file on a fixture's inputs: frames pushed oldest first, the given noise,
+/// the fastest kernels of this CPU.
 pub fn run_engine(weights: &[u8], fixture: &Fixture) -> Result<EngineRun> {
+    run_engine_with(weights, fixture, Backend::Auto)
+}
+
+/// [`run_engine`] on a chosen kernel backend; fails if another one ran.
+pub fn run_engine_with(weights: &[u8], fixture: &Fixture, backend: Backend) -> Result<EngineRun> {
     let model = Model::from_bytes(weights)?;
     model.expect_config(&fixture.config)?;
     let config = fixture.config;
     let plan = scdp_engine::ArenaPlan::new(&config);
     let mut arena = AlignedBytes::zeroed(plan.arena_bytes);
-    let mut policy = Policy::new(&model, arena.as_mut_slice())?;
+    let mut policy = Policy::with_backend(&model, arena.as_mut_slice(), backend)?;
+    if let Some(expected) = scdp_engine::kernels::select(backend) {
+        anyhow::ensure!(
+            policy.kernels_name() == expected.name(),
+            "{backend:?} did not run"
+        );
+    }
     policy.set_camera(fixture.camera()?);
     let frames = config.n_obs_steps as usize;
     let frame_bytes = fixture.images.len() / frames;

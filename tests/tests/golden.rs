@@ -11,7 +11,10 @@
 //! summation order is expected to land within a small multiple of another f32
 //! implementation. The first stage outside its bound names where a bug is.
 
-use scdp_tests::{EngineRun, Fixture, golden_fixtures, run_engine, synthetic_weights_file};
+use scdp_tests::{
+    EngineRun, Fixture, available_backends, golden_fixtures, run_engine_with,
+    synthetic_weights_file,
+};
 
 const ACTION_TOLERANCE: f64 = 2e-4;
 const STAGE_FACTOR: f64 = 10.0;
@@ -172,40 +175,43 @@ fn every_golden_fixture_matches_the_float64_reference() {
             .display()
             .to_string();
         let weights = synthetic_weights_file(&fixture.config, fixture.seed).unwrap();
-        let run = run_engine(weights.as_slice(), &fixture).unwrap();
-        let comparisons = stages(&fixture, &run);
-        let action_error = normalized_action_error(
-            &fixture,
-            &run.action_pred,
-            &fixture.array("ref64.action_pred").values,
-        );
-        let float32_error = normalized_action_error(
-            &fixture,
-            &fixture.f32s("ref32.action_pred"),
-            &fixture.array("ref64.action_pred").values,
-        );
-        let worst = comparisons
-            .iter()
-            .map(|c| c.error / c.tolerance)
-            .fold(0.0, f64::max);
-        println!(
-            "{name}: action_pred error {action_error:.2e} (float32 PyTorch {float32_error:.2e}); worst stage at {worst:.2} of its bound"
-        );
-        if let Some(first) = comparisons.iter().find(|c| !within(c.error, c.tolerance)) {
-            failures.push(format!(
-                "{name}: first diverging stage `{}`: error {:.3e} > tolerance {:.3e}",
-                first.stage, first.error, first.tolerance
-            ));
-        }
-        if !within(action_error, ACTION_TOLERANCE) {
-            failures.push(format!(
-                "{name}: action_pred error {action_error:.3e} > {ACTION_TOLERANCE:e}"
-            ));
-        }
-        let action_rows = &fixture.array("ref64.action").values;
-        let action_rows_error = max_error(&widen(&run.action), action_rows);
-        if !within(action_rows_error, max_abs(action_rows) * 1e-2 + 1e-6) {
-            failures.push(format!("{name}: executed action slice differs from the reference's ({action_rows_error:.3e})"));
+        for backend in available_backends() {
+            let name = format!("{name} [{backend:?}]");
+            let run = run_engine_with(weights.as_slice(), &fixture, backend).unwrap();
+            let comparisons = stages(&fixture, &run);
+            let action_error = normalized_action_error(
+                &fixture,
+                &run.action_pred,
+                &fixture.array("ref64.action_pred").values,
+            );
+            let float32_error = normalized_action_error(
+                &fixture,
+                &fixture.f32s("ref32.action_pred"),
+                &fixture.array("ref64.action_pred").values,
+            );
+            let worst = comparisons
+                .iter()
+                .map(|c| c.error / c.tolerance)
+                .fold(0.0, f64::max);
+            println!(
+                "{name}: action_pred error {action_error:.2e} (float32 PyTorch {float32_error:.2e}); worst stage at {worst:.2} of its bound"
+            );
+            if let Some(first) = comparisons.iter().find(|c| !within(c.error, c.tolerance)) {
+                failures.push(format!(
+                    "{name}: first diverging stage `{}`: error {:.3e} > tolerance {:.3e}",
+                    first.stage, first.error, first.tolerance
+                ));
+            }
+            if !within(action_error, ACTION_TOLERANCE) {
+                failures.push(format!(
+                    "{name}: action_pred error {action_error:.3e} > {ACTION_TOLERANCE:e}"
+                ));
+            }
+            let action_rows = &fixture.array("ref64.action").values;
+            let action_rows_error = max_error(&widen(&run.action), action_rows);
+            if !within(action_rows_error, max_abs(action_rows) * 1e-2 + 1e-6) {
+                failures.push(format!("{name}: executed action slice differs from the reference's ({action_rows_error:.3e})"));
+            }
         }
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));

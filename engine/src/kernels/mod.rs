@@ -6,8 +6,42 @@
 
 pub mod ops;
 pub mod scalar;
+#[cfg(target_arch = "x86_64")]
+pub mod x86_64;
 
 use crate::weights::Weight;
+
+/// Which kernel implementation to run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum Backend {
+    /// The fastest the CPU supports.
+    Auto,
+    /// The portable reference.
+    Scalar,
+    /// x86-64 AVX2 + FMA.
+    Avx2,
+}
+
+/// The implementation for `backend`, or `None` when this CPU cannot run it. Detection uses
+/// CPUID, so it works without std.
+pub fn select(backend: Backend) -> Option<&'static dyn Kernels> {
+    match backend {
+        Backend::Scalar => Some(&scalar::Scalar),
+        Backend::Avx2 => avx2(),
+        Backend::Auto => avx2().or(Some(&scalar::Scalar)),
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+fn avx2() -> Option<&'static dyn Kernels> {
+    x86_64::avx2::Avx2::detect().map(|kernels| kernels as &'static dyn Kernels)
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+fn avx2() -> Option<&'static dyn Kernels> {
+    None
+}
 
 /// Shape of a 2-D convolution over channels-last maps (`[H, W, C]`), weights packed
 /// `[kernel_height, kernel_width, in_channels, out_channels]`. A 1-D convolution over

@@ -1,0 +1,325 @@
+//! AVX2 + FMA kernels. The convolution keeps a 4-pixel x 16-channel tile of outputs in eight
+//! YMM accumulators: per input channel and tap, two weight loads and four broadcasts feed
+//! eight FMAs (the scalar reference reloads and stores its output for every product).
+//! Everything else delegates to the scalar reference.
+
+use core::arch::x86_64::{
+    __m256, _mm256_add_ps, _mm256_fmadd_ps, _mm256_loadu_ps, _mm256_set1_ps, _mm256_setzero_ps,
+    _mm256_storeu_ps,
+};
+
+use crate::kernels::scalar::Scalar;
+use crate::kernels::{Accumulate, ConvShape, Kernels, QuantizedRows};
+
+/// Output pixels per tile (along a row) and output channels per tile.
+const PIXELS: usize = 4;
+const CHANNELS: usize = 16;
+
+/// AVX2 + FMA kernels. Reachable only through [`Avx2::detect`], which checks the CPU.
+#[derive(Debug)]
+pub struct Avx2 {
+    _checked: (),
+}
+
+static INSTANCE: Avx2 = Avx2 { _checked: () };
+
+impl Avx2 {
+    /// `None` unless the CPU and OS support AVX2 and FMA.
+    pub fn detect() -> Option<&'static Avx2> {
+        super::has_avx2_fma().then_some(&INSTANCE)
+    }
+}
+
+/// Whether every kernel tap of output pixels `out_x .. out_x + PIXELS` of row `out_y` reads
+/// inside the input (no padding involved).
+fn interior(shape: &ConvShape, out_y: usize, out_x: usize) -> bool {
+    let top = out_y * shape.stride;
+    let left = out_x * shape.stride;
+    let right = (out_x + PIXELS - 1) * shape.stride + shape.kernel_width;
+    top >= shape.padding_height
+        && top + shape.kernel_height <= shape.in_height + shape.padding_height
+        && left >= shape.padding_width
+        && right <= shape.in_width + shape.padding_width
+}
+
+/// Four output pixels x 16 channels from `channel`, all taps inside the input.
+///
+/// # Safety
+/// The CPU supports AVX2 and FMA; the slices have the lengths `shape` implies;
+/// `interior(shape, out_y, out_x)` holds; `channel + 16 <= out_channels`.
+#[target_feature(enable = "avx2,fma")]
+unsafe fn interior_tile(
+    shape: &ConvShape,
+    input: &[f32],
+    weight: &[f32],
+    out_y: usize,
+    out_x: usize,
+    channel: usize,
+) -> [[__m256; 2]; PIXELS] {
+    let in_channels = shape.in_channels;
+    let out_channels = shape.out_channels;
+    let stride = shape.stride;
+    let mut sums = [[_mm256_setzero_ps(); 2]; PIXELS];
+    for kernel_y in 0..shape.kernel_height {
+        let in_y = out_y * stride + kernel_y - shape.padding_height;
+        for kernel_x in 0..shape.kernel_width {
+            let in_x = out_x * stride + kernel_x - shape.padding_width;
+            let first = (in_y * shape.in_width + in_x) * in_channels;
+            let pixel_step = stride * in_channels;
+            let taps =
+                (kernel_y * shape.kernel_width + kernel_x) * in_channels * out_channels + channel;
+            for input_channel in 0..in_channels {
+                // SAFETY: `interior` puts all four pixels of this tap inside the input, and
+                // the weight row of 16 channels from `channel` is inside the tap's block.
+                unsafe {
+                    let row = weight.as_ptr().add(taps + input_channel * out_channels);
+                    let low = _mm256_loadu_ps(row);
+                    let high = _mm256_loadu_ps(row.add(8));
+                    let values = input.as_ptr().add(first + input_channel);
+                    for (pixel, sum) in sums.iter_mut().enumerate() {
+                        let value = _mm256_set1_ps(*values.add(pixel * pixel_step));
+                        sum[0] = _mm256_fmadd_ps(value, low, sum[0]);
+                        sum[1] = _mm256_fmadd_ps(value, high, sum[1]);
+                    }
+                }
+            }
+        }
+    }
+    sums
+}
+
+/// Adds the bias (and the existing output with [`Accumulate::Add`]) and stores a tile.
+///
+/// # Safety
+/// The CPU supports AVX2; `channel + 16 <= out_channels`; the four pixels from `first_pixel`
+/// are inside `output`.
+#[target_feature(enable = "avx2,fma")]
+unsafe fn store_tile(
+    sums: &[[__m256; 2]; PIXELS],
+    bias: &[f32],
+    output: &mut [f32],
+    out_channels: usize,
+    first_pixel: usize,
+    channel: usize,
+    accumulate: Accumulate,
+) {
+    let bias = &bias[channel..channel + CHANNELS];
+    for (pixel, sum) in sums.iter().enumerate() {
+        let out = &mut output[(first_pixel + pixel) * out_channels + channel..][..CHANNELS];
+        for (half, &value) in sum.iter().enumerate() {
+            let at = 8 * half;
+            // SAFETY: `out` and `bias` hold 16 floats; each access covers 8 from `at`.
+            unsafe {
+                let mut value = _mm256_add_ps(value, _mm256_loadu_ps(bias.as_ptr().add(at)));
+                if accumulate == Accumulate::Add {
+                    value = _mm256_add_ps(value, _mm256_loadu_ps(out.as_ptr().add(at)));
+                }
+                _mm256_storeu_ps(out.as_mut_ptr().add(at), value);
+            }
+        }
+    }
+}
+
+/// The scalar reference for output pixels `from .. to` of row `out_y` (border pixels).
+#[allow(clippy::too_many_arguments)]
+fn scalar_pixels(
+    shape: &ConvShape,
+    input: &[f32],
+    weight: &[f32],
+    bias: &[f32],
+    output: &mut [f32],
+    accumulate: Accumulate,
+    out_y: usize,
+    (from, to): (usize, usize),
+) {
+    let out_width = shape.out_width();
+    let out_channels = shape.out_channels;
+    for out_x in from..to {
+        let out = &mut output[(out_y * out_width + out_x) * out_channels..][..out_channels];
+        match accumulate {
+            Accumulate::Overwrite => out.copy_from_slice(bias),
+            Accumulate::Add => out.iter_mut().zip(bias).for_each(|(o, b)| *o += b),
+        }
+        for kernel_y in 0..shape.kernel_height {
+            let Some(in_y) = (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height)
+            else {
+                continue;
+            };
+            if in_y >= shape.in_height {
+                continue;
+            }
+            for kernel_x in 0..shape.kernel_width {
+                let Some(in_x) = (out_x * shape.stride + kernel_x).checked_sub(shape.padding_width)
+                else {
+                    continue;
+                };
+                if in_x >= shape.in_width {
+                    continue;
+                }
+                let pixel = &input[(in_y * shape.in_width + in_x) * shape.in_channels..]
+                    [..shape.in_channels];
+                let taps = &weight[(kernel_y * shape.kernel_width + kernel_x)
+                    * shape.in_channels
+                    * out_channels..][..shape.in_channels * out_channels];
+                for (&value, row) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
+                    for (o, &w) in out.iter_mut().zip(row) {
+                        *o += value * w;
+                    }
+                }
+            }
+        }
+    }
+}
+
+impl Kernels for Avx2 {
+    fn name(&self) -> &'static str {
+        "avx2"
+    }
+
+    fn conv(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        assert_eq!(input.len(), shape.input_len());
+        assert_eq!(weight.len(), shape.weight_len());
+        assert_eq!(bias.len(), shape.out_channels);
+        assert_eq!(output.len(), shape.output_len());
+        if !shape.out_channels.is_multiple_of(CHANNELS) {
+            // Narrow layers (the tiny model, the noise head) are not worth a tail path.
+            return Scalar.conv(shape, input, weight, bias, output, accumulate);
+        }
+        let out_width = shape.out_width();
+        for out_y in 0..shape.out_height() {
+            let mut out_x = 0;
+            let mut border_from = 0;
+            while out_x + PIXELS <= out_width {
+                if !interior(shape, out_y, out_x) {
+                    out_x += 1;
+                    continue;
+                }
+                scalar_pixels(
+                    shape,
+                    input,
+                    weight,
+                    bias,
+                    output,
+                    accumulate,
+                    out_y,
+                    (border_from, out_x),
+                );
+                for channel in (0..shape.out_channels).step_by(CHANNELS) {
+                    // SAFETY: `self` exists only when AVX2 and FMA were detected; the asserts
+                    // above fix the slice lengths; `interior` was checked for this tile and
+                    // `channel + 16 <= out_channels` as out_channels is a multiple of 16.
+                    unsafe {
+                        let sums = interior_tile(shape, input, weight, out_y, out_x, channel);
+                        store_tile(
+                            &sums,
+                            bias,
+                            output,
+                            shape.out_channels,
+                            out_y * out_width + out_x,
+                            channel,
+                            accumulate,
+                        );
+                    }
+                }
+                out_x += PIXELS;
+                border_from = out_x;
+            }
+            scalar_pixels(
+                shape,
+                input,
+                weight,
+                bias,
+                output,
+                accumulate,
+                out_y,
+                (border_from, out_width),
+            );
+        }
+    }
+
+    fn upsample_conv(
+        &self,
+        length: usize,
+        in_channels: usize,
+        out_channels: usize,
+        input: &[f32],
+        weight: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+    ) {
+        Scalar.upsample_conv(
+            length,
+            in_channels,
+            out_channels,
+            input,
+            weight,
+            bias,
+            output,
+        )
+    }
+
+    fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
+        Scalar.matvec(weight, input, base, output)
+    }
+
+    fn conv_int8(
+        &self,
+        shape: &ConvShape,
+        input: &QuantizedRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        Scalar.conv_int8(
+            shape,
+            input,
+            weight,
+            weight_scales,
+            bias,
+            output,
+            accumulate,
+        )
+    }
+
+    fn conv_weight_int8(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        Scalar.conv_weight_int8(
+            shape,
+            input,
+            weight,
+            weight_scales,
+            bias,
+            output,
+            accumulate,
+        )
+    }
+
+    fn matvec_weight_int8(
+        &self,
+        weight: &[i8],
+        row_scales: &[f32],
+        input: &[f32],
+        base: &[f32],
+        output: &mut [f32],
+    ) {
+        Scalar.matvec_weight_int8(weight, row_scales, input, base, output)
+    }
+}
