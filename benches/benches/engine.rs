@@ -1,4 +1,5 @@
-//! Per-stage and end-to-end latency of the f32 engine, one thread:
+//! Per-stage and end-to-end latency of the f32 engine, one thread, on the scalar reference
+//! kernels and on the fastest this CPU supports, in the same run:
 //! `cargo bench -p scdp-benches --bench engine`.
 //!
 //! - `encode`: one frame through preprocessing, the ResNet-18 trunk and the projections;
@@ -12,9 +13,9 @@ use std::time::Duration;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use scdp_benches::Setup;
-use scdp_engine::{Model, Noise, Policy};
+use scdp_engine::{Backend, Model, Noise, Policy};
 
-fn bench_config(c: &mut Criterion, name: &'static str) {
+fn bench_config(c: &mut Criterion, name: &'static str, backend: Backend) {
     let mut setup = Setup::new(name);
     let model = Model::from_bytes(setup.weights.as_slice()).expect("model");
     let frames = setup.config.n_obs_steps as usize;
@@ -29,7 +30,8 @@ fn bench_config(c: &mut Criterion, name: &'static str) {
     let state_dim = config.state_dim as usize;
     let frame = |i: usize| &images[i * frame_bytes..][..frame_bytes];
     let state_of = |i: usize| &state[i * state_dim..][..state_dim];
-    let mut policy = Policy::new(&model, setup.arena.as_mut_slice()).expect("arena");
+    let mut policy =
+        Policy::with_backend(&model, setup.arena.as_mut_slice(), backend).expect("backend");
     policy.set_camera(camera);
     for i in 0..frames {
         policy
@@ -37,7 +39,7 @@ fn bench_config(c: &mut Criterion, name: &'static str) {
             .expect("frame");
     }
 
-    let mut group = c.benchmark_group(format!("f32/{}", setup.name));
+    let mut group = c.benchmark_group(format!("f32_{}/{}", policy.kernels_name(), setup.name));
     group
         .sample_size(10)
         .warm_up_time(Duration::from_secs(1))
@@ -75,8 +77,10 @@ fn bench_config(c: &mut Criterion, name: &'static str) {
 }
 
 fn benches(c: &mut Criterion) {
-    for name in ["metaworld", "panda"] {
-        bench_config(c, name);
+    for backend in [Backend::Scalar, Backend::Auto] {
+        for name in ["metaworld", "panda"] {
+            bench_config(c, name, backend);
+        }
     }
 }
 
