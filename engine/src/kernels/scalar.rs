@@ -6,6 +6,55 @@ use super::{Accumulate, ConvShape, Kernels, QuantizedRows};
 /// Output channels accumulated at once in the int8 kernels (an i32 block on the stack).
 const INT8_BLOCK: usize = 128;
 
+/// The kernel taps of output pixel `(out_y, out_x)` that read inside the input (padding
+/// taps contribute zero and are skipped): the input pixel's index and the tap's index
+/// `kernel_y * kernel_width + kernel_x`.
+pub(crate) fn taps_inside(
+    shape: &ConvShape,
+    out_y: usize,
+    out_x: usize,
+) -> impl Iterator<Item = (usize, usize)> + '_ {
+    (0..shape.kernel_height)
+        .flat_map(move |kernel_y| (0..shape.kernel_width).map(move |kernel_x| (kernel_y, kernel_x)))
+        .filter_map(move |(kernel_y, kernel_x)| {
+            let in_y = (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height)?;
+            let in_x = (out_x * shape.stride + kernel_x).checked_sub(shape.padding_width)?;
+            (in_y < shape.in_height && in_x < shape.in_width).then_some((
+                in_y * shape.in_width + in_x,
+                kernel_y * shape.kernel_width + kernel_x,
+            ))
+        })
+}
+
+/// The f32 convolution of output pixels `columns` of row `out_y`: the whole reference
+/// kernel, and the border pixels of the SIMD ones.
+pub(crate) fn conv_pixels(
+    shape: &ConvShape,
+    (input, weight, bias): (&[f32], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+    out_y: usize,
+    columns: core::ops::Range<usize>,
+) {
+    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+    for out_x in columns {
+        let out = &mut output[(out_y * shape.out_width() + out_x) * out_channels..][..out_channels];
+        match accumulate {
+            Accumulate::Overwrite => out.copy_from_slice(bias),
+            Accumulate::Add => out.iter_mut().zip(bias).for_each(|(o, b)| *o += b),
+        }
+        for (row, tap) in taps_inside(shape, out_y, out_x) {
+            let pixel = &input[row * in_channels..][..in_channels];
+            let taps = &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
+            for (&value, weights) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
+                for (o, &w) in out.iter_mut().zip(weights) {
+                    *o += value * w;
+                }
+            }
+        }
+    }
+}
+
 /// Portable scalar kernels (the compiler may still auto-vectorise the inner loops).
 pub struct Scalar;
 
@@ -23,50 +72,19 @@ impl Kernels for Scalar {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        let out_width = shape.out_width();
-        let in_channels = shape.in_channels;
-        let out_channels = shape.out_channels;
         assert_eq!(input.len(), shape.input_len());
         assert_eq!(weight.len(), shape.weight_len());
-        assert_eq!(bias.len(), out_channels);
+        assert_eq!(bias.len(), shape.out_channels);
         assert_eq!(output.len(), shape.output_len());
-        for (position, out) in output.chunks_exact_mut(out_channels).enumerate() {
-            let out_y = position / out_width;
-            let out_x = position % out_width;
-            match accumulate {
-                Accumulate::Overwrite => out.copy_from_slice(bias),
-                Accumulate::Add => out.iter_mut().zip(bias).for_each(|(o, b)| *o += b),
-            }
-            for kernel_y in 0..shape.kernel_height {
-                let Some(in_y) =
-                    (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height)
-                else {
-                    continue;
-                };
-                if in_y >= shape.in_height {
-                    continue;
-                }
-                for kernel_x in 0..shape.kernel_width {
-                    let Some(in_x) =
-                        (out_x * shape.stride + kernel_x).checked_sub(shape.padding_width)
-                    else {
-                        continue;
-                    };
-                    if in_x >= shape.in_width {
-                        continue;
-                    }
-                    let pixel =
-                        &input[(in_y * shape.in_width + in_x) * in_channels..][..in_channels];
-                    let taps = &weight
-                        [(kernel_y * shape.kernel_width + kernel_x) * in_channels * out_channels..]
-                        [..in_channels * out_channels];
-                    for (&value, row) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
-                        for (o, &w) in out.iter_mut().zip(row) {
-                            *o += value * w;
-                        }
-                    }
-                }
-            }
+        for out_y in 0..shape.out_height() {
+            conv_pixels(
+                shape,
+                (input, weight, bias),
+                output,
+                accumulate,
+                out_y,
+                0..shape.out_width(),
+            );
         }
     }
 
@@ -146,41 +164,21 @@ impl Kernels for Scalar {
                 let width = (out_channels - block).min(INT8_BLOCK);
                 let mut totals = [0.0f32; INT8_BLOCK];
                 let totals = &mut totals[..width];
-                for kernel_y in 0..shape.kernel_height {
-                    let Some(in_y) =
-                        (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height)
-                    else {
-                        continue;
-                    };
-                    if in_y >= shape.in_height {
-                        continue;
+                for (row, tap) in taps_inside(shape, out_y, out_x) {
+                    let pixel = &input.values[row * in_channels..][..in_channels];
+                    let taps =
+                        &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
+                    let mut sums = [0i32; INT8_BLOCK];
+                    let sums = &mut sums[..width];
+                    for (&value, weights) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
+                        let value = value as i32;
+                        for (sum, &w) in sums.iter_mut().zip(&weights[block..block + width]) {
+                            *sum += value * w as i32;
+                        }
                     }
-                    for kernel_x in 0..shape.kernel_width {
-                        let Some(in_x) =
-                            (out_x * shape.stride + kernel_x).checked_sub(shape.padding_width)
-                        else {
-                            continue;
-                        };
-                        if in_x >= shape.in_width {
-                            continue;
-                        }
-                        let row = in_y * shape.in_width + in_x;
-                        let pixel = &input.values[row * in_channels..][..in_channels];
-                        let taps = &weight[(kernel_y * shape.kernel_width + kernel_x)
-                            * in_channels
-                            * out_channels..][..in_channels * out_channels];
-                        let mut sums = [0i32; INT8_BLOCK];
-                        let sums = &mut sums[..width];
-                        for (&value, weights) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
-                            let value = value as i32;
-                            for (sum, &w) in sums.iter_mut().zip(&weights[block..block + width]) {
-                                *sum += value * w as i32;
-                            }
-                        }
-                        let scale = input.scales[row];
-                        for (total, &sum) in totals.iter_mut().zip(sums.iter()) {
-                            *total += sum as f32 * scale;
-                        }
+                    let scale = input.scales[row];
+                    for (total, &sum) in totals.iter_mut().zip(sums.iter()) {
+                        *total += sum as f32 * scale;
                     }
                 }
                 let out = &mut out[block..block + width];
@@ -225,34 +223,13 @@ impl Kernels for Scalar {
                 let width = (out_channels - block).min(INT8_BLOCK);
                 let mut totals = [0.0f32; INT8_BLOCK];
                 let totals = &mut totals[..width];
-                for kernel_y in 0..shape.kernel_height {
-                    let Some(in_y) =
-                        (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height)
-                    else {
-                        continue;
-                    };
-                    if in_y >= shape.in_height {
-                        continue;
-                    }
-                    for kernel_x in 0..shape.kernel_width {
-                        let Some(in_x) =
-                            (out_x * shape.stride + kernel_x).checked_sub(shape.padding_width)
-                        else {
-                            continue;
-                        };
-                        if in_x >= shape.in_width {
-                            continue;
-                        }
-                        let pixel =
-                            &input[(in_y * shape.in_width + in_x) * in_channels..][..in_channels];
-                        let taps = &weight[(kernel_y * shape.kernel_width + kernel_x)
-                            * in_channels
-                            * out_channels..][..in_channels * out_channels];
-                        for (&value, weights) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
-                            for (total, &w) in totals.iter_mut().zip(&weights[block..block + width])
-                            {
-                                *total += value * w as f32;
-                            }
+                for (row, tap) in taps_inside(shape, out_y, out_x) {
+                    let pixel = &input[row * in_channels..][..in_channels];
+                    let taps =
+                        &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
+                    for (&value, weights) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
+                        for (total, &w) in totals.iter_mut().zip(&weights[block..block + width]) {
+                            *total += value * w as f32;
                         }
                     }
                 }

@@ -1,14 +1,14 @@
 //! AVX2 + FMA kernels. The convolution keeps a 4-pixel x 16-channel tile of outputs in eight
 //! YMM accumulators: per input channel and tap, two weight loads and four broadcasts feed
 //! eight FMAs (the scalar reference reloads and stores its output for every product).
-//! Everything else delegates to the scalar reference.
+//! Border pixels and everything else use the scalar reference.
 
 use core::arch::x86_64::{
     __m256, _mm256_add_ps, _mm256_fmadd_ps, _mm256_loadu_ps, _mm256_set1_ps, _mm256_setzero_ps,
     _mm256_storeu_ps,
 };
 
-use crate::kernels::scalar::Scalar;
+use crate::kernels::scalar::{Scalar, conv_pixels};
 use crate::kernels::{Accumulate, ConvShape, Kernels, QuantizedRows};
 
 /// Output pixels per tile (along a row) and output channels per tile.
@@ -120,57 +120,6 @@ unsafe fn store_tile(
     }
 }
 
-/// The scalar reference for output pixels `from .. to` of row `out_y` (border pixels).
-#[allow(clippy::too_many_arguments)]
-fn scalar_pixels(
-    shape: &ConvShape,
-    input: &[f32],
-    weight: &[f32],
-    bias: &[f32],
-    output: &mut [f32],
-    accumulate: Accumulate,
-    out_y: usize,
-    (from, to): (usize, usize),
-) {
-    let out_width = shape.out_width();
-    let out_channels = shape.out_channels;
-    for out_x in from..to {
-        let out = &mut output[(out_y * out_width + out_x) * out_channels..][..out_channels];
-        match accumulate {
-            Accumulate::Overwrite => out.copy_from_slice(bias),
-            Accumulate::Add => out.iter_mut().zip(bias).for_each(|(o, b)| *o += b),
-        }
-        for kernel_y in 0..shape.kernel_height {
-            let Some(in_y) = (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height)
-            else {
-                continue;
-            };
-            if in_y >= shape.in_height {
-                continue;
-            }
-            for kernel_x in 0..shape.kernel_width {
-                let Some(in_x) = (out_x * shape.stride + kernel_x).checked_sub(shape.padding_width)
-                else {
-                    continue;
-                };
-                if in_x >= shape.in_width {
-                    continue;
-                }
-                let pixel = &input[(in_y * shape.in_width + in_x) * shape.in_channels..]
-                    [..shape.in_channels];
-                let taps = &weight[(kernel_y * shape.kernel_width + kernel_x)
-                    * shape.in_channels
-                    * out_channels..][..shape.in_channels * out_channels];
-                for (&value, row) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
-                    for (o, &w) in out.iter_mut().zip(row) {
-                        *o += value * w;
-                    }
-                }
-            }
-        }
-    }
-}
-
 impl Kernels for Avx2 {
     fn name(&self) -> &'static str {
         "avx2"
@@ -205,15 +154,13 @@ impl Kernels for Avx2 {
                     out_x += 1;
                     continue;
                 }
-                scalar_pixels(
+                conv_pixels(
                     shape,
-                    input,
-                    weight,
-                    bias,
+                    (input, weight, bias),
                     output,
                     accumulate,
                     out_y,
-                    (border_from, out_x),
+                    border_from..out_x,
                 );
                 for channel in (0..shape.out_channels).step_by(CHANNELS) {
                     // SAFETY: `self` exists only when AVX2 and FMA were detected; the asserts
@@ -235,15 +182,13 @@ impl Kernels for Avx2 {
                 out_x += PIXELS;
                 border_from = out_x;
             }
-            scalar_pixels(
+            conv_pixels(
                 shape,
-                input,
-                weight,
-                bias,
+                (input, weight, bias),
                 output,
                 accumulate,
                 out_y,
-                (border_from, out_width),
+                border_from..out_width,
             );
         }
     }
