@@ -266,6 +266,9 @@ impl<'w> WeightsFile<'w> {
         if config_offset != HEADER_BYTES || config_len != CONFIG_BYTES {
             return Err(LoadError::BadHeader);
         }
+        if bytes.len() < HEADER_BYTES + CONFIG_BYTES {
+            return Err(LoadError::Truncated);
+        }
         let config = decode_config(&bytes[config_offset..config_offset + CONFIG_BYTES])?;
         if table_offset != HEADER_BYTES + CONFIG_BYTES || tensor_count > 100_000 {
             return Err(LoadError::BadHeader);
