@@ -146,7 +146,11 @@ impl ModelConfig {
         if self.horizon == 0 || !self.horizon.is_multiple_of(4) || self.horizon > 256 {
             return Err(ConfigError::HorizonNotMultipleOfFour);
         }
-        if self.n_action_steps == 0 || self.n_obs_steps - 1 + self.n_action_steps > self.horizon {
+        // Compared with the room left after the history rather than summed: the values may come
+        // from an untrusted file, and the sum could overflow.
+        if self.n_action_steps == 0
+            || self.n_action_steps > self.horizon.saturating_sub(self.n_obs_steps - 1)
+        {
             return Err(ConfigError::ActionStepsBeyondHorizon);
         }
         if self.reconstruction_horizon == 0
@@ -295,3 +299,30 @@ pub const fn conv_output(input: usize, kernel: usize, stride: usize, padding: us
 pub const MAX_OBS_STEPS: usize = 8;
 pub const MAX_ANCHOR_STEPS: usize = 32;
 pub const MAX_INFERENCE_STEPS: usize = 100;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn huge_counts_from_a_file_are_errors_not_overflows() {
+        let mut config = ModelConfig::PANDA;
+        config.n_action_steps = u32::MAX;
+        assert_eq!(
+            config.validate(),
+            Err(ConfigError::ActionStepsBeyondHorizon)
+        );
+        config = ModelConfig::PANDA;
+        config.reconstruction_horizon = u32::MAX;
+        assert_eq!(config.validate(), Err(ConfigError::ReconstructionHorizon));
+        config = ModelConfig::PANDA;
+        config.n_obs_steps = 8;
+        config.horizon = 4;
+        config.n_action_steps = 1;
+        assert_eq!(
+            config.validate(),
+            Err(ConfigError::ActionStepsBeyondHorizon)
+        );
+        assert_eq!(ModelConfig::PANDA.validate(), Ok(()));
+    }
+}
