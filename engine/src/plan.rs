@@ -3,11 +3,11 @@
 //!
 //! ```
 //! use scdp_engine::{Arena, ArenaPlan, ModelConfig};
-//! const CONFIG: ModelConfig = ModelConfig::METAWORLD;
+//! const CONFIG: ModelConfig = ModelConfig::TINY;
 //! const PLAN: ArenaPlan = ArenaPlan::new(&CONFIG);
-//! static ARENA: std::sync::Mutex<Arena<{ PLAN.arena_bytes }>> =
-//!     std::sync::Mutex::new(Arena::new());
-//! # assert!(PLAN.arena_bytes > 0);
+//! // In firmware: `static mut ARENA: Arena<{ PLAN.arena_bytes }> = Arena::new();`
+//! let arena = Arena::<{ PLAN.arena_bytes }>::new();
+//! assert_eq!(arena.0.len(), PLAN.arena_bytes);
 //! ```
 //!
 //! Buffers whose lifetimes do not overlap share memory: the feature maps and the small
