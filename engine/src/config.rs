@@ -212,6 +212,11 @@ impl ModelConfig {
         {
             return Err(ConfigError::InferenceSteps);
         }
+        // Legal sizes can still ask for more memory than a 32-bit target can address (8
+        // frames of 4096x4096 pyramids); refused here so no length ever wraps around.
+        if crate::plan::ArenaPlan::arena_bytes_u64(self) > isize::MAX as u64 {
+            return Err(ConfigError::ArenaTooLarge);
+        }
         Ok(())
     }
 

@@ -25,6 +25,8 @@ pub enum ConfigError {
     KernelSize,
     TrainTimesteps,
     InferenceSteps,
+    /// The buffers of one inference exceed the address space (32-bit targets).
+    ArenaTooLarge,
 }
 
 impl fmt::Display for ConfigError {
@@ -55,6 +57,9 @@ impl fmt::Display for ConfigError {
             Self::TrainTimesteps => "num_train_timesteps must be in 1..=10000",
             Self::InferenceSteps => {
                 "num_inference_steps must be in 1..=100 and at most num_train_timesteps"
+            }
+            Self::ArenaTooLarge => {
+                "the arena this configuration needs exceeds the address space"
             }
         })
     }

@@ -21,11 +21,6 @@ use crate::format::ALIGN;
 
 const FLOATS_PER_LINE: usize = ALIGN / 4;
 
-/// `len` f32 values rounded up to whole 64-byte lines.
-pub const fn aligned_len(len: usize) -> usize {
-    len.div_ceil(FLOATS_PER_LINE) * FLOATS_PER_LINE
-}
-
 /// Lengths, in f32 values, of every buffer. The arena is carved in the order of the fields.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ArenaPlan {
@@ -67,43 +62,121 @@ pub struct ArenaPlan {
 }
 
 impl ArenaPlan {
+    /// The plan of `config`. Every length is computed in `u64`, so a legal config whose
+    /// buffers exceed a 32-bit address space cannot wrap around: its `arena_bytes` saturates
+    /// at `usize::MAX`, which no arena can satisfy (`Policy::new` returns `ArenaTooSmall`),
+    /// and [`ModelConfig::validate`] refuses it in the first place.
     pub const fn new(config: &ModelConfig) -> ArenaPlan {
-        let frames = config.n_obs_steps as usize;
-        let steps = config.num_inference_steps as usize;
-        let horizon = config.horizon as usize;
-        let action_dim = config.action_dim as usize;
+        let plan = Lengths::new(config);
+        ArenaPlan {
+            arena_bytes: saturate(plan.arena_bytes),
+            without_reuse_bytes: saturate(plan.without_reuse_bytes),
+            features: saturate(plan.features),
+            states: saturate(plan.states),
+            anchors: saturate(plan.anchors),
+            sample: saturate(plan.sample),
+            eps: saturate(plan.eps),
+            global_cond: saturate(plan.global_cond),
+            activated_cond: saturate(plan.activated_cond),
+            film: saturate(plan.film),
+            quantized: saturate(plan.quantized),
+            quantized_scales: saturate(plan.quantized_scales),
+            scratch: saturate(plan.scratch),
+            trunk_activation: saturate(plan.trunk_activation),
+            trunk_stem: saturate(plan.trunk_stem),
+            unet_work: saturate(plan.unet_work),
+            unet_skips: [saturate(plan.unet_skips[0]), saturate(plan.unet_skips[1])],
+        }
+    }
+
+    /// Bytes of the arena `config` needs, exactly, whatever the width of `usize`.
+    pub(crate) const fn arena_bytes_u64(config: &ModelConfig) -> u64 {
+        Lengths::new(config).arena_bytes
+    }
+}
+
+const fn saturate(value: u64) -> usize {
+    if value > usize::MAX as u64 {
+        usize::MAX
+    } else {
+        value as usize
+    }
+}
+
+/// `len` f32 values rounded up to whole 64-byte lines, in `u64`.
+const fn aligned(len: u64) -> u64 {
+    len.div_ceil(FLOATS_PER_LINE as u64) * FLOATS_PER_LINE as u64
+}
+
+const fn max(a: u64, b: u64) -> u64 {
+    if a > b { a } else { b }
+}
+
+/// [`ArenaPlan`]'s lengths in `u64`. The config's own size helpers return `usize`; only
+/// those bounded far below 2^32 by `validate`'s limits (map sides, channel counts, the
+/// condition's length) are used, every product is formed here.
+struct Lengths {
+    arena_bytes: u64,
+    without_reuse_bytes: u64,
+    features: u64,
+    states: u64,
+    anchors: u64,
+    sample: u64,
+    eps: u64,
+    global_cond: u64,
+    activated_cond: u64,
+    film: u64,
+    quantized: u64,
+    quantized_scales: u64,
+    scratch: u64,
+    trunk_activation: u64,
+    trunk_stem: u64,
+    unet_work: u64,
+    unet_skips: [u64; UNET_LEVELS - 1],
+}
+
+impl Lengths {
+    const fn new(config: &ModelConfig) -> Lengths {
+        let frames = config.n_obs_steps as u64;
+        let steps = config.num_inference_steps as u64;
+        let horizon = config.horizon as u64;
+        let action_dim = config.action_dim as u64;
         let sequence = horizon * action_dim;
 
-        let features = aligned_len(frames * config.feature_frame_len());
-        let states = aligned_len(frames * config.state_dim as usize);
-        let anchors = aligned_len(steps * config.anchor_count() * 2);
-        let sample = aligned_len(sequence);
-        let eps = aligned_len(sequence);
-        let global_cond = aligned_len(config.global_cond_dim());
+        let mut frame_cells = 0;
+        let mut level = 0;
+        while level < PYRAMID_LEVELS {
+            let (height, width) = config.pyramid_size(level);
+            frame_cells += height as u64 * width as u64;
+            level += 1;
+        }
+        let features = aligned(frames * frame_cells * config.feature_dim as u64);
+        let states = aligned(frames * config.state_dim as u64);
+        let anchors = aligned(steps * config.anchor_count() as u64 * 2);
+        let sample = aligned(sequence);
+        let eps = aligned(sequence);
+        let global_cond = aligned(config.global_cond_dim() as u64);
         let activated_cond = global_cond;
         let mut widest = 0;
         let mut level = 0;
         while level < UNET_LEVELS {
-            if config.down_dims[level] as usize > widest {
-                widest = config.down_dims[level] as usize;
-            }
+            widest = max(widest, config.down_dims[level] as u64);
             level += 1;
         }
-        let film = aligned_len(2 * widest);
+        let film = aligned(2 * widest);
 
         // Trunk: the image and every stage's activation fit in one activation buffer.
-        let image = config.image_height as usize * config.image_width as usize * 3;
+        let pixels = config.image_height as u64 * config.image_width as u64;
+        let image = pixels * 3;
         let (stem_height, stem_width) = config.stem_size();
-        let stem = stem_height * stem_width * config.stage_channels(0);
+        let stem = stem_height as u64 * stem_width as u64 * config.stage_channels(0) as u64;
         let mut largest_activation = image;
         let mut trunk_naive = image + stem;
         let mut stage = 0;
         while stage < 4 {
             let (height, width) = config.pyramid_size(stage + 1);
-            let activation = height * width * config.stage_channels(stage);
-            if activation > largest_activation {
-                largest_activation = activation;
-            }
+            let activation = height as u64 * width as u64 * config.stage_channels(stage) as u64;
+            largest_activation = max(largest_activation, activation);
             // Without reuse: each block's two convolutions (+ shortcut for the first block
             // of stages 2-4) and the max pool output have buffers of their own.
             let per_stage = if stage == 0 { 5 } else { 6 };
@@ -111,24 +184,17 @@ impl ArenaPlan {
             stage += 1;
         }
         let (c1_height, c1_width) = config.pyramid_size(0);
-        let maxpool = c1_height * c1_width * config.stage_channels(0);
-        if maxpool > largest_activation {
-            largest_activation = maxpool;
-        }
-        let trunk_activation = aligned_len(largest_activation);
-        let trunk_stem = aligned_len(stem);
-        let trunk_tail = if trunk_stem > 3 * trunk_activation {
-            trunk_stem
-        } else {
-            3 * trunk_activation
-        };
-        let trunk = trunk_activation + trunk_tail;
+        let maxpool = c1_height as u64 * c1_width as u64 * config.stage_channels(0) as u64;
+        largest_activation = max(largest_activation, maxpool);
+        let trunk_activation = aligned(largest_activation);
+        let trunk_stem = aligned(stem);
+        let trunk = trunk_activation + max(trunk_stem, 3 * trunk_activation);
 
         // Denoiser: the widest activation is an up block's concatenated input.
-        let unet_work = aligned_len(horizon * 2 * widest);
+        let unet_work = aligned(horizon * 2 * widest);
         let unet_skips = [
-            aligned_len((horizon / 2) * config.down_dims[1] as usize),
-            aligned_len((horizon / 4) * config.down_dims[2] as usize),
+            aligned((horizon / 2) * config.down_dims[1] as u64),
+            aligned((horizon / 4) * config.down_dims[2] as u64),
         ];
         let unet = 4 * unet_work + unet_skips[0] + unet_skips[1];
         // Without reuse: every block output and intermediate of one U-Net pass (two
@@ -138,9 +204,8 @@ impl ArenaPlan {
         // Int8 activations are the trunk's only (the U-Net's int8 weights are weight-only):
         // its inputs, the image included should the stem be int8, fit one activation
         // buffer, and their rows are at most the image's pixels.
-        let quantized = aligned_len(trunk_activation.div_ceil(4));
-        let quantized_scales =
-            aligned_len(config.image_height as usize * config.image_width as usize);
+        let quantized = aligned(trunk_activation.div_ceil(4));
+        let quantized_scales = aligned(pixels);
         let persistent = features
             + states
             + anchors
@@ -151,8 +216,8 @@ impl ArenaPlan {
             + film
             + quantized
             + quantized_scales;
-        let scratch = if trunk > unet { trunk } else { unet };
-        ArenaPlan {
+        let scratch = max(trunk, unet);
+        Lengths {
             arena_bytes: 4 * (persistent + scratch),
             without_reuse_bytes: 4 * (persistent + trunk_naive + unet_naive),
             features,
