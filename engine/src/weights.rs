@@ -16,7 +16,7 @@ use core::fmt::{self, Write};
 
 use crate::config::{BackboneNorm, ModelConfig, PYRAMID_LEVELS, UNET_LEVELS};
 use crate::error::Error;
-use crate::format::{DType, TensorEntry, WeightsFile};
+use crate::format::{DType, Quant, TensorEntry, WeightsFile};
 
 /// Anything that can hand out the model's tensors in order.
 pub trait TensorSource<'w> {
@@ -65,20 +65,29 @@ impl Weight<'_> {
 pub struct FileSource<'w> {
     file: WeightsFile<'w>,
     next: usize,
+    /// Whether any weight was stored as int8, to check the header's storage field.
+    int8_seen: bool,
 }
 
 impl<'w> FileSource<'w> {
     pub fn new(file: WeightsFile<'w>) -> Self {
-        FileSource { file, next: 0 }
+        FileSource {
+            file,
+            next: 0,
+            int8_seen: false,
+        }
     }
 
-    /// Fails unless every tensor of the file was used.
+    /// Fails unless every tensor of the file was used, and the header's weight storage
+    /// says int8 exactly when some weight is int8 (the field is a promise tools read).
     pub fn finish(self) -> Result<(), Error> {
-        if self.next == self.file.tensor_count() {
-            Ok(())
-        } else {
-            Err(Error::ExtraTensors)
+        if self.next != self.file.tensor_count() {
+            return Err(Error::ExtraTensors);
         }
+        if self.int8_seen != (self.file.quant() == Quant::Int8) {
+            return Err(Error::BadHeader);
+        }
+        Ok(())
     }
 }
 
@@ -132,6 +141,7 @@ impl<'w> TensorSource<'w> for FileSource<'w> {
                 if scales.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
                     return Err(Error::UnexpectedTensor { index: index + 1 });
                 }
+                self.int8_seen = true;
                 Ok(Weight::Int8 { values, scales })
             }
         }
