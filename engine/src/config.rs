@@ -289,6 +289,14 @@ impl ModelConfig {
         total * self.feature_dim as usize
     }
 
+    /// Whether projection F(level + 1) is evaluated only at the cells the anchors sample
+    /// (on demand, cached per frame) instead of over the whole map at encode time: when the
+    /// map has more cells than one inference can touch (steps x points x 4 neighbours).
+    pub const fn projection_on_demand(&self, level: usize) -> bool {
+        let (height, width) = self.pyramid_size(level);
+        height * width > self.num_inference_steps as usize * self.anchor_count() * 4
+    }
+
     /// Groups of a trunk GroupNorm over `channels` (SPEC section 2: C/16).
     pub const fn backbone_groups(channels: usize) -> usize {
         channels / 16

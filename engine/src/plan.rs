@@ -30,8 +30,10 @@ pub struct ArenaPlan {
     pub without_reuse_bytes: usize,
 
     // Persistent between calls.
-    /// `To` frames of the five projected maps, `[H_n, W_n, d]` each, levels back to back.
+    /// `To` frames, each laid out as [`FrameLayout`] says.
     pub features: usize,
+    /// One frame's part of `features`.
+    pub frame: FrameLayout,
     /// `To` raw state vectors.
     pub states: usize,
     /// `[steps, s + 1, 2]` anchor pixels of the last inference (NaN where invalid).
@@ -72,6 +74,13 @@ impl ArenaPlan {
             arena_bytes: saturate(plan.arena_bytes),
             without_reuse_bytes: saturate(plan.without_reuse_bytes),
             features: saturate(plan.features),
+            frame: FrameLayout {
+                maps: saturate(plan.frame.maps),
+                taps: saturate(plan.frame.taps),
+                tap_scales: saturate(plan.frame.tap_scales),
+                computed: saturate(plan.frame.computed),
+                total: saturate(plan.frame.total),
+            },
             states: saturate(plan.states),
             anchors: saturate(plan.anchors),
             sample: saturate(plan.sample),
@@ -92,6 +101,63 @@ impl ArenaPlan {
     /// Bytes of the arena `config` needs, exactly, whatever the width of `usize`.
     pub(crate) const fn arena_bytes_u64(config: &ModelConfig) -> u64 {
         Lengths::new(config).arena_bytes
+    }
+}
+
+/// One history frame's persistent buffers, in f32 units, back to back in this order:
+/// - `maps`: the five projected maps `[H_n, W_n, d]`, levels back to back. A level whose
+///   projection runs on demand ([`ModelConfig::projection_on_demand`]) holds only the cells
+///   computed so far;
+/// - `taps`: for those levels, the projection's input C(level + 1), `[H_n, W_n, C_n]`, in
+///   f32, or in int8 (bytes, same element offsets) for int8 weights;
+/// - `tap_scales`: for int8 weights, one scale per cell of those taps;
+/// - `computed`: one bit per cell of those levels (u32 words), set once the cell is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct FrameLayout {
+    pub maps: usize,
+    pub taps: usize,
+    pub tap_scales: usize,
+    pub computed: usize,
+    pub total: usize,
+}
+
+struct FrameLengths {
+    maps: u64,
+    taps: u64,
+    tap_scales: u64,
+    computed: u64,
+    total: u64,
+}
+
+impl FrameLengths {
+    const fn new(config: &ModelConfig) -> FrameLengths {
+        let mut cells = 0;
+        let mut on_demand_cells = 0;
+        let mut on_demand_words = 0;
+        let mut taps = 0;
+        let mut level = 0;
+        while level < PYRAMID_LEVELS {
+            let (height, width) = config.pyramid_size(level);
+            let level_cells = height as u64 * width as u64;
+            cells += level_cells;
+            if config.projection_on_demand(level) {
+                on_demand_cells += level_cells;
+                on_demand_words += level_cells.div_ceil(32);
+                taps += level_cells * config.pyramid_channels(level) as u64;
+            }
+            level += 1;
+        }
+        let maps = aligned(cells * config.feature_dim as u64);
+        let taps = aligned(taps);
+        let tap_scales = aligned(on_demand_cells);
+        let computed = aligned(on_demand_words);
+        FrameLengths {
+            maps,
+            taps,
+            tap_scales,
+            computed,
+            total: maps + taps + tap_scales + computed,
+        }
     }
 }
 
@@ -119,6 +185,7 @@ struct Lengths {
     arena_bytes: u64,
     without_reuse_bytes: u64,
     features: u64,
+    frame: FrameLengths,
     states: u64,
     anchors: u64,
     sample: u64,
@@ -143,14 +210,8 @@ impl Lengths {
         let action_dim = config.action_dim as u64;
         let sequence = horizon * action_dim;
 
-        let mut frame_cells = 0;
-        let mut level = 0;
-        while level < PYRAMID_LEVELS {
-            let (height, width) = config.pyramid_size(level);
-            frame_cells += height as u64 * width as u64;
-            level += 1;
-        }
-        let features = aligned(frames * frame_cells * config.feature_dim as u64);
+        let frame = FrameLengths::new(config);
+        let features = frames * frame.total;
         let states = aligned(frames * config.state_dim as u64);
         let anchors = aligned(steps * config.anchor_count() as u64 * 2);
         let sample = aligned(sequence);
@@ -221,6 +282,7 @@ impl Lengths {
             arena_bytes: 4 * (persistent + scratch),
             without_reuse_bytes: 4 * (persistent + trunk_naive + unet_naive),
             features,
+            frame,
             states,
             anchors,
             sample,

@@ -10,7 +10,7 @@ use crate::frame;
 use crate::kernels::ops::mish;
 use crate::kernels::{self, Backend, Kernels, QuantizeScratch};
 use crate::plan::{ArenaPlan, Carver};
-use crate::pyramid::{self, TrunkScratch};
+use crate::pyramid::{self, FrameStore, TrunkScratch};
 use crate::rng::NoiseRng;
 use crate::scheduler;
 use crate::weights::{FileSource, ModelWeights, SCHEDULE_COLUMNS};
@@ -210,7 +210,7 @@ impl<'w, 'a> Policy<'w, 'a> {
         } else {
             0
         };
-        let frame_len = config.feature_frame_len();
+        let frame_len = self.plan.frame.total;
         let kernels = self.kernels;
         let weights = self.model.weights();
         let plan = self.plan;
@@ -218,14 +218,17 @@ impl<'w, 'a> Policy<'w, 'a> {
         let buffers = self.buffers();
         let (first, rest) = buffers.scratch.split_at_mut(plan.trunk_activation);
         frame::preprocess(&config, image, first)?;
-        let features = &mut buffers.features[slot * frame_len..][..frame_len];
+        let mut store = FrameStore::new(
+            &mut buffers.features[slot * frame_len..][..frame_len],
+            &plan.frame,
+        );
         let scratch = TrunkScratch {
             first,
             rest,
             activation_len: plan.trunk_activation,
             quantized: buffers.quantized,
         };
-        pyramid::encode(kernels, &config, &weights.pyramid, scratch, features);
+        pyramid::encode(kernels, &config, &weights.pyramid, scratch, &mut store);
         buffers.states[slot * state_dim..][..state_dim].copy_from_slice(state);
         if first_observation {
             for other in 1..frames {
@@ -259,7 +262,7 @@ impl<'w, 'a> Policy<'w, 'a> {
         let sequence = config.horizon as usize * config.action_dim as usize;
         let frames = config.n_obs_steps as usize;
         let state_dim = config.state_dim as usize;
-        let frame_len = config.feature_frame_len();
+        let frame_len = self.plan.frame.total;
         let context_dim = config.context_dim();
         let anchor_values = config.anchor_count() * 2;
         let newest = self.newest;
@@ -313,9 +316,15 @@ impl<'w, 'a> Policy<'w, 'a> {
             );
             for frame_index in 0..frames {
                 let slot = (oldest + frame_index) % frames;
+                let mut store = FrameStore::new(
+                    &mut buffers.features[slot * frame_len..][..frame_len],
+                    &plan.frame,
+                );
                 context::pool_context(
+                    kernels,
                     &config,
-                    &buffers.features[slot * frame_len..][..frame_len],
+                    &weights.pyramid.projections,
+                    &mut store,
                     anchors_uv,
                     &mut buffers.global_cond[frame_index * cond_stride..][..context_dim],
                 );
@@ -385,22 +394,21 @@ impl<'w, 'a> Policy<'w, 'a> {
     }
 
     /// Projected map F(level + 1) of history frame `frame` (0 = oldest), `[H_n, W_n, d]`.
-    pub fn feature_map(&self, frame: usize, level: usize) -> Option<&[f32]> {
-        let config = self.config();
+    /// Cells that inferences have not needed yet are computed first, so this is the whole
+    /// dense map.
+    pub fn feature_map(&mut self, frame: usize, level: usize) -> Option<&[f32]> {
+        let config = *self.config();
         let frames = config.n_obs_steps as usize;
         if !self.has_observation || frame >= frames || level >= PYRAMID_LEVELS {
             return None;
         }
         let slot = (self.newest + 1 + frame) % frames;
-        let feature_dim = config.feature_dim as usize;
-        let level_len = |l: usize| {
-            let (height, width) = config.pyramid_size(l);
-            height * width * feature_dim
-        };
-        let start: usize =
-            slot * config.feature_frame_len() + (0..level).map(level_len).sum::<usize>();
-        // The feature maps are the arena's first buffer (see `buffers`).
-        Some(&self.arena[start..][..level_len(level)])
+        let (kernels, weights, layout) = (self.kernels, self.model.weights(), self.plan.frame);
+        // The frames are the arena's first buffer (see `buffers`).
+        let region = &mut self.arena[slot * layout.total..][..layout.total];
+        let mut store = FrameStore::new(region, &layout);
+        store.complete(kernels, &config, &weights.pyramid.projections[level], level);
+        Some(store.into_map(&config, level))
     }
 }
 

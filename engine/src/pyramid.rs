@@ -4,7 +4,8 @@
 use crate::config::ModelConfig;
 use crate::kernels::ops::{self, Activation};
 use crate::kernels::{self, Accumulate, Activations, ConvShape, Kernels, QuantizeScratch};
-use crate::weights::{ConvNorm, PyramidWeights};
+use crate::plan::FrameLayout;
+use crate::weights::{Conv, ConvNorm, PyramidWeights};
 
 /// Four activation buffers the residual blocks rotate through; the first holds the image.
 pub struct TrunkScratch<'a> {
@@ -51,16 +52,160 @@ fn conv_norm(
     }
 }
 
-/// Encodes a preprocessed image (already in `scratch.first`) into `features`, the five
-/// projected maps `[H_n, W_n, d]` back to back.
+/// One history frame's persistent buffers, as [`FrameLayout`] lays them out.
+pub struct FrameStore<'a> {
+    pub maps: &'a mut [f32],
+    pub taps: &'a mut [f32],
+    pub tap_scales: &'a mut [f32],
+    pub computed: &'a mut [u32],
+}
+
+/// One level's part of a [`FrameStore`]; the last three are empty for a dense level.
+struct LevelStore<'s> {
+    map: &'s mut [f32],
+    taps: &'s mut [f32],
+    tap_scales: &'s mut [f32],
+    computed: &'s mut [u32],
+}
+
+impl<'a> FrameStore<'a> {
+    /// Splits one frame's region of the arena.
+    pub fn new(region: &'a mut [f32], layout: &FrameLayout) -> Self {
+        let (maps, rest) = region.split_at_mut(layout.maps);
+        let (taps, rest) = rest.split_at_mut(layout.taps);
+        let (tap_scales, rest) = rest.split_at_mut(layout.tap_scales);
+        FrameStore {
+            maps,
+            taps,
+            tap_scales,
+            computed: bytemuck::cast_slice_mut(&mut rest[..layout.computed]),
+        }
+    }
+
+    fn level(&mut self, config: &ModelConfig, level: usize) -> LevelStore<'_> {
+        let (map_at, tap_at, cell_at, word_at) = level_offsets(config, level);
+        let feature_dim = config.feature_dim as usize;
+        let (height, width) = config.pyramid_size(level);
+        let cells = height * width;
+        let map = &mut self.maps[map_at..][..cells * feature_dim];
+        if !config.projection_on_demand(level) {
+            return LevelStore {
+                map,
+                taps: &mut [],
+                tap_scales: &mut [],
+                computed: &mut [],
+            };
+        }
+        LevelStore {
+            map,
+            taps: &mut self.taps[tap_at..][..cells * config.pyramid_channels(level)],
+            tap_scales: &mut self.tap_scales[cell_at..][..cells],
+            computed: &mut self.computed[word_at..][..cells.div_ceil(32)],
+        }
+    }
+
+    /// Projected map F(level + 1), `[H_n, W_n, d]`; for an on-demand level only the cells
+    /// computed so far are meaningful (see [`complete`](Self::complete)).
+    pub fn map(&mut self, config: &ModelConfig, level: usize) -> &[f32] {
+        self.level(config, level).map
+    }
+
+    /// [`map`](Self::map), keeping the arena's lifetime.
+    pub fn into_map(self, config: &ModelConfig, level: usize) -> &'a [f32] {
+        let (map_at, ..) = level_offsets(config, level);
+        let (height, width) = config.pyramid_size(level);
+        &self.maps[map_at..][..height * width * config.feature_dim as usize]
+    }
+
+    /// Makes sure the cells `(row, column)` of on-demand level `level` are computed.
+    pub fn ensure_cells(
+        &mut self,
+        kernels: &dyn Kernels,
+        config: &ModelConfig,
+        projection: &Conv<'_>,
+        level: usize,
+        cells: impl Iterator<Item = (usize, usize)>,
+    ) {
+        if !config.projection_on_demand(level) {
+            return;
+        }
+        let store = self.level(config, level);
+        let (height, width) = config.pyramid_size(level);
+        let feature_dim = config.feature_dim as usize;
+        let shape = projection_shape(config, level);
+        for (row, column) in cells {
+            if row >= height || column >= width {
+                continue;
+            }
+            let cell = row * width + column;
+            let (word, bit) = (cell / 32, 1u32 << (cell % 32));
+            if store.computed[word] & bit != 0 {
+                continue;
+            }
+            kernels::convolve_pixel(
+                kernels,
+                &shape,
+                (store.taps, store.tap_scales),
+                (&projection.weight, projection.bias),
+                (row, column),
+                &mut store.map[cell * feature_dim..][..feature_dim],
+            );
+            store.computed[word] |= bit;
+        }
+    }
+
+    /// Computes every cell of `level` not computed yet: the map is then what a dense
+    /// projection gives.
+    pub fn complete(
+        &mut self,
+        kernels: &dyn Kernels,
+        config: &ModelConfig,
+        projection: &Conv<'_>,
+        level: usize,
+    ) {
+        let (height, width) = config.pyramid_size(level);
+        let cells = (0..height).flat_map(|row| (0..width).map(move |column| (row, column)));
+        self.ensure_cells(kernels, config, projection, level, cells);
+    }
+}
+
+/// Where `level` starts in each part of a [`FrameStore`]: map values, tap values, tap
+/// cells and computed-bit words.
+fn level_offsets(config: &ModelConfig, level: usize) -> (usize, usize, usize, usize) {
+    let (mut map_at, mut tap_at, mut cell_at, mut word_at) = (0, 0, 0, 0);
+    for before in 0..level {
+        let (height, width) = config.pyramid_size(before);
+        map_at += height * width * config.feature_dim as usize;
+        if config.projection_on_demand(before) {
+            tap_at += height * width * config.pyramid_channels(before);
+            cell_at += height * width;
+            word_at += (height * width).div_ceil(32);
+        }
+    }
+    (map_at, tap_at, cell_at, word_at)
+}
+
+/// The 3x3 projection of tap C(level + 1) to `feature_dim` channels.
+fn projection_shape(config: &ModelConfig, level: usize) -> ConvShape {
+    let (height, width) = config.pyramid_size(level);
+    ConvShape::square(
+        (height, width, config.pyramid_channels(level)),
+        config.feature_dim as usize,
+        3,
+        1,
+        1,
+    )
+}
+
+/// Encodes a preprocessed image (already in `scratch.first`) into `frame`: the five
+/// projected maps, except that a level projected on demand keeps its input instead.
 pub fn encode(
     kernels: &dyn Kernels,
     config: &ModelConfig,
     weights: &PyramidWeights<'_>,
     mut scratch: TrunkScratch<'_>,
-    features: &mut [f32],
+    frame: &mut FrameStore<'_>,
 ) {
-    let feature_dim = config.feature_dim as usize;
     let stem_channels = config.stage_channels(0);
     let image = (config.image_height as usize, config.image_width as usize, 3);
     let stem_shape = ConvShape::square(image, stem_channels, 7, 2, 3);
@@ -91,35 +236,34 @@ pub fn encode(
     ];
 
     let mut quantized = scratch.quantized;
-    let mut feature_maps = features;
-    // Projects tap C(level + 1) into the next map of `feature_maps`.
-    let project = |level: usize,
-                   input: &[f32],
-                   maps: &mut &mut [f32],
-                   quantized: &mut QuantizeScratch<'_>| {
-        let (height, width) = config.pyramid_size(level);
-        let shape = ConvShape::square(
-            (height, width, config.pyramid_channels(level)),
-            feature_dim,
-            3,
-            1,
-            1,
-        );
-        let (map, rest) = core::mem::take(maps).split_at_mut(shape.output_len());
+    // Projects tap C(level + 1), or keeps it for on-demand projection.
+    let mut project = |level: usize, input: &[f32], quantized: &mut QuantizeScratch<'_>| {
+        let shape = projection_shape(config, level);
         let projection = &weights.projections[level];
-        kernels::convolve(
-            kernels,
-            &shape,
-            input,
-            &projection.weight,
-            projection.bias,
-            map,
-            Accumulate::Overwrite,
-            Activations::Int8(quantized),
-        );
-        *maps = rest;
+        let store = frame.level(config, level);
+        if config.projection_on_demand(level) {
+            kernels::store_input(
+                &projection.weight,
+                &input[..shape.input_len()],
+                shape.in_channels,
+                store.taps,
+                store.tap_scales,
+            );
+            store.computed.fill(0);
+        } else {
+            kernels::convolve(
+                kernels,
+                &shape,
+                input,
+                &projection.weight,
+                projection.bias,
+                store.map,
+                Accumulate::Overwrite,
+                Activations::Int8(quantized),
+            );
+        }
     };
-    project(0, buffers[0], &mut feature_maps, &mut quantized);
+    project(0, buffers[0], &mut quantized);
 
     let (mut height, mut width) = (height, width);
     let mut channels = stem_channels;
@@ -173,6 +317,6 @@ pub fn encode(
             buffers.swap(0, 2);
             (height, width, channels) = (out_height, out_width, out_channels);
         }
-        project(stage + 1, buffers[0], &mut feature_maps, &mut quantized);
+        project(stage + 1, buffers[0], &mut quantized);
     }
 }

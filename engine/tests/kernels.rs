@@ -572,3 +572,93 @@ fn symmetric_quantization_round_trips_within_half_a_step() {
     assert!(ops::quantize_symmetric(&[1.0, f32::NAN, 2.0], &mut [0; 3]).is_nan());
     assert!(ops::quantize_symmetric(&[1.0, f32::INFINITY], &mut [0; 2]).is_nan());
 }
+
+/// `conv_pixel` and `conv_int8_pixel` must give, bit for bit, what the same backend's dense
+/// kernel writes at that pixel (the pyramid evaluates large projections only at the cells
+/// the anchors sample). Every pixel of random 2-D shapes, borders and tiles included, with
+/// widths that leave partial tiles.
+#[test]
+fn single_pixel_convolution_equals_the_dense_kernel_bit_for_bit() {
+    use scdp_engine::kernels::QuantizedRows;
+    for (name, kernels) in backends() {
+        let mut rng = Lcg(31);
+        for case in 0..40 {
+            let kernel = [1, 3, 5][rng.below(3)];
+            let stride = 1 + rng.below(2);
+            let padding = rng.below(kernel / 2 + 1);
+            let in_channels = 1 + rng.below(24);
+            let out_channels = if case % 2 == 0 {
+                16 * (1 + rng.below(4))
+            } else {
+                1 + rng.below(40)
+            };
+            let shape = ConvShape::square(
+                (kernel + rng.below(9), kernel + rng.below(9), in_channels),
+                out_channels,
+                kernel,
+                stride,
+                padding,
+            );
+            let input = rng.vec(shape.input_len());
+            let weight = rng.vec(shape.weight_len());
+            let bias = rng.vec(out_channels);
+            let mut dense = vec![f32::NAN; shape.output_len()];
+            kernels.conv(
+                &shape,
+                &input,
+                &weight,
+                &bias,
+                &mut dense,
+                Accumulate::Overwrite,
+            );
+            let values = random_i8(&mut rng, shape.input_len());
+            let rows = shape.in_height * shape.in_width;
+            let row_scales: Vec<f32> = (0..rows).map(|_| 0.01 + rng.next().abs()).collect();
+            let quantized = QuantizedRows {
+                values: &values,
+                scales: &row_scales,
+            };
+            let weight_int8 = random_i8(&mut rng, shape.weight_len());
+            let weight_scales: Vec<f32> = (0..out_channels)
+                .map(|_| 0.001 + rng.next().abs() * 0.01)
+                .collect();
+            let mut dense_int8 = vec![f32::NAN; shape.output_len()];
+            kernels.conv_int8(
+                &shape,
+                &quantized,
+                &weight_int8,
+                &weight_scales,
+                &bias,
+                &mut dense_int8,
+                Accumulate::Overwrite,
+            );
+            for y in 0..shape.out_height() {
+                for x in 0..shape.out_width() {
+                    let at = (y * shape.out_width() + x) * out_channels;
+                    let mut pixel = vec![f32::NAN; out_channels];
+                    kernels.conv_pixel(&shape, &input, &weight, &bias, (y, x), &mut pixel);
+                    let same = |a: &[f32], b: &[f32]| {
+                        a.iter().zip(b).all(|(p, q)| p.to_bits() == q.to_bits())
+                    };
+                    assert!(
+                        same(&pixel, &dense[at..at + out_channels]),
+                        "{name} case {case} f32 pixel ({y}, {x}) of {shape:?}"
+                    );
+                    kernels.conv_int8_pixel(
+                        &shape,
+                        &quantized,
+                        &weight_int8,
+                        &weight_scales,
+                        &bias,
+                        (y, x),
+                        &mut pixel,
+                    );
+                    assert!(
+                        same(&pixel, &dense_int8[at..at + out_channels]),
+                        "{name} case {case} int8 pixel ({y}, {x}) of {shape:?}"
+                    );
+                }
+            }
+        }
+    }
+}

@@ -158,6 +158,53 @@ pub trait Kernels: Sync {
         accumulate: Accumulate,
     );
 
+    /// Output pixel `pixel = (out_y, out_x)` of [`conv`](Self::conv) with
+    /// [`Accumulate::Overwrite`], written to `output` (`out_channels` values): bit for bit
+    /// what `conv` writes there on this implementation. The pyramid evaluates large
+    /// projections only at the cells the anchors sample, and must get the dense values.
+    #[allow(clippy::too_many_arguments)]
+    fn conv_pixel(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[f32],
+        bias: &[f32],
+        pixel: (usize, usize),
+        output: &mut [f32],
+    ) {
+        scalar::conv_pixel(
+            shape,
+            (input, weight, bias),
+            output,
+            Accumulate::Overwrite,
+            pixel,
+        );
+    }
+
+    /// [`conv_pixel`](Self::conv_pixel) for [`conv_int8`](Self::conv_int8).
+    #[allow(clippy::too_many_arguments)]
+    fn conv_int8_pixel(
+        &self,
+        shape: &ConvShape,
+        input: &QuantizedRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        pixel: (usize, usize),
+        output: &mut [f32],
+    ) {
+        scalar::conv_int8_pixel(
+            shape,
+            input,
+            weight,
+            weight_scales,
+            bias,
+            output,
+            Accumulate::Overwrite,
+            pixel,
+        );
+    }
+
     /// PyTorch's ConvTranspose1d(kernel 4, stride 2, padding 1) over `[length, in]`,
     /// weights packed `[4, in, out]`, giving `[2 length, out]`.
     #[allow(clippy::too_many_arguments)]
@@ -284,6 +331,56 @@ pub fn convolve(
         }
         (Weight::Int8 { values, scales }, Activations::F32) => {
             kernels.conv_weight_int8(shape, input, values, scales, bias, output, accumulate)
+        }
+    }
+}
+
+/// Keeps a layer's input for later [`convolve_pixel`] calls, in the form its weights
+/// read: copied for f32 weights; quantized per row (`row_len` values) for int8 weights,
+/// the values as bytes at the front of `values` and one scale per row in `scales`.
+pub fn store_input(
+    weight: &Weight<'_>,
+    input: &[f32],
+    row_len: usize,
+    values: &mut [f32],
+    scales: &mut [f32],
+) {
+    match weight {
+        Weight::F32(_) => values[..input.len()].copy_from_slice(input),
+        Weight::Int8 { .. } => {
+            let mut scratch = QuantizeScratch {
+                values: bytemuck::cast_slice_mut(values),
+                scales,
+            };
+            scratch.quantize(input, row_len);
+        }
+    }
+}
+
+/// Output pixel `pixel` of [`convolve`] with [`Accumulate::Overwrite`], into `output`,
+/// from an input kept by [`store_input`] (`values`, `scales` as it left them).
+pub fn convolve_pixel(
+    kernels: &dyn Kernels,
+    shape: &ConvShape,
+    (values, scales): (&[f32], &[f32]),
+    (weight, bias): (&Weight<'_>, &[f32]),
+    pixel: (usize, usize),
+    output: &mut [f32],
+) {
+    match *weight {
+        Weight::F32(weights) => {
+            let input = &values[..shape.input_len()];
+            kernels.conv_pixel(shape, input, weights, bias, pixel, output)
+        }
+        Weight::Int8 {
+            values: weights,
+            scales: weight_scales,
+        } => {
+            let input = QuantizedRows {
+                values: &bytemuck::cast_slice(values)[..shape.input_len()],
+                scales: &scales[..shape.in_height * shape.in_width],
+            };
+            kernels.conv_int8_pixel(shape, &input, weights, weight_scales, bias, pixel, output)
         }
     }
 }

@@ -36,20 +36,90 @@ pub(crate) fn conv_pixels(
     out_y: usize,
     columns: core::ops::Range<usize>,
 ) {
-    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+    let out_channels = shape.out_channels;
     for out_x in columns {
         let out = &mut output[(out_y * shape.out_width() + out_x) * out_channels..][..out_channels];
-        match accumulate {
-            Accumulate::Overwrite => out.copy_from_slice(bias),
-            Accumulate::Add => out.iter_mut().zip(bias).for_each(|(o, b)| *o += b),
+        conv_pixel(
+            shape,
+            (input, weight, bias),
+            out,
+            accumulate,
+            (out_y, out_x),
+        );
+    }
+}
+
+/// The f32 convolution at output pixel `(out_y, out_x)` into `out` (its channels): bias
+/// first, then every product in tap and input-channel order.
+pub(crate) fn conv_pixel(
+    shape: &ConvShape,
+    (input, weight, bias): (&[f32], &[f32], &[f32]),
+    out: &mut [f32],
+    accumulate: Accumulate,
+    (out_y, out_x): (usize, usize),
+) {
+    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+    match accumulate {
+        Accumulate::Overwrite => out.copy_from_slice(bias),
+        Accumulate::Add => out.iter_mut().zip(bias).for_each(|(o, b)| *o += b),
+    }
+    for (row, tap) in taps_inside(shape, out_y, out_x) {
+        let pixel = &input[row * in_channels..][..in_channels];
+        let taps = &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
+        for (&value, weights) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
+            for (o, &w) in out.iter_mut().zip(weights) {
+                *o += value * w;
+            }
         }
+    }
+}
+
+/// The int8 convolution at output pixel `(out_y, out_x)` into `out` (its channels), in the
+/// order [`Kernels::conv_int8`] prescribes.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn conv_int8_pixel(
+    shape: &ConvShape,
+    input: &QuantizedRows<'_>,
+    weight: &[i8],
+    weight_scales: &[f32],
+    bias: &[f32],
+    out: &mut [f32],
+    accumulate: Accumulate,
+    (out_y, out_x): (usize, usize),
+) {
+    let in_channels = shape.in_channels;
+    let out_channels = shape.out_channels;
+    for block in (0..out_channels).step_by(INT8_BLOCK) {
+        let width = (out_channels - block).min(INT8_BLOCK);
+        let mut totals = [0.0f32; INT8_BLOCK];
+        let totals = &mut totals[..width];
         for (row, tap) in taps_inside(shape, out_y, out_x) {
-            let pixel = &input[row * in_channels..][..in_channels];
+            let pixel = &input.values[row * in_channels..][..in_channels];
             let taps = &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
+            let mut sums = [0i32; INT8_BLOCK];
+            let sums = &mut sums[..width];
             for (&value, weights) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
-                for (o, &w) in out.iter_mut().zip(weights) {
-                    *o += value * w;
+                let value = value as i32;
+                for (sum, &w) in sums.iter_mut().zip(&weights[block..block + width]) {
+                    *sum += value * w as i32;
                 }
+            }
+            let scale = input.scales[row];
+            for (total, &sum) in totals.iter_mut().zip(sums.iter()) {
+                *total += sum as f32 * scale;
+            }
+        }
+        let out = &mut out[block..block + width];
+        for (((o, &total), &scale), &b) in out
+            .iter_mut()
+            .zip(totals.iter())
+            .zip(&weight_scales[block..block + width])
+            .zip(&bias[block..block + width])
+        {
+            let value = total * scale + b;
+            match accumulate {
+                Accumulate::Overwrite => *o = value,
+                Accumulate::Add => *o += value,
             }
         }
     }
@@ -149,7 +219,6 @@ impl Kernels for Scalar {
         accumulate: Accumulate,
     ) {
         let out_width = shape.out_width();
-        let in_channels = shape.in_channels;
         let out_channels = shape.out_channels;
         assert_eq!(input.values.len(), shape.input_len());
         assert_eq!(input.scales.len(), shape.in_height * shape.in_width);
@@ -158,43 +227,17 @@ impl Kernels for Scalar {
         assert_eq!(bias.len(), out_channels);
         assert_eq!(output.len(), shape.output_len());
         for (position, out) in output.chunks_exact_mut(out_channels).enumerate() {
-            let out_y = position / out_width;
-            let out_x = position % out_width;
-            for block in (0..out_channels).step_by(INT8_BLOCK) {
-                let width = (out_channels - block).min(INT8_BLOCK);
-                let mut totals = [0.0f32; INT8_BLOCK];
-                let totals = &mut totals[..width];
-                for (row, tap) in taps_inside(shape, out_y, out_x) {
-                    let pixel = &input.values[row * in_channels..][..in_channels];
-                    let taps =
-                        &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
-                    let mut sums = [0i32; INT8_BLOCK];
-                    let sums = &mut sums[..width];
-                    for (&value, weights) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
-                        let value = value as i32;
-                        for (sum, &w) in sums.iter_mut().zip(&weights[block..block + width]) {
-                            *sum += value * w as i32;
-                        }
-                    }
-                    let scale = input.scales[row];
-                    for (total, &sum) in totals.iter_mut().zip(sums.iter()) {
-                        *total += sum as f32 * scale;
-                    }
-                }
-                let out = &mut out[block..block + width];
-                for (((o, &total), &scale), &b) in out
-                    .iter_mut()
-                    .zip(totals.iter())
-                    .zip(&weight_scales[block..block + width])
-                    .zip(&bias[block..block + width])
-                {
-                    let value = total * scale + b;
-                    match accumulate {
-                        Accumulate::Overwrite => *o = value,
-                        Accumulate::Add => *o += value,
-                    }
-                }
-            }
+            let pixel = (position / out_width, position % out_width);
+            conv_int8_pixel(
+                shape,
+                input,
+                weight,
+                weight_scales,
+                bias,
+                out,
+                accumulate,
+                pixel,
+            );
         }
     }
 

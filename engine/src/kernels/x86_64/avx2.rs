@@ -30,36 +30,38 @@ impl Avx2 {
     }
 }
 
-/// Whether every kernel tap of output pixels `out_x .. out_x + PIXELS` of row `out_y` reads
+/// Whether every kernel tap of output pixels `out_x .. out_x + pixels` of row `out_y` reads
 /// inside the input (no padding involved).
-fn interior(shape: &ConvShape, out_y: usize, out_x: usize) -> bool {
+fn interior(shape: &ConvShape, out_y: usize, out_x: usize, pixels: usize) -> bool {
     let top = out_y * shape.stride;
     let left = out_x * shape.stride;
-    let right = (out_x + PIXELS - 1) * shape.stride + shape.kernel_width;
+    let right = (out_x + pixels - 1) * shape.stride + shape.kernel_width;
     top >= shape.padding_height
         && top + shape.kernel_height <= shape.in_height + shape.padding_height
         && left >= shape.padding_width
         && right <= shape.in_width + shape.padding_width
 }
 
-/// Four output pixels x 16 channels from `channel`, all taps inside the input.
+/// `N` output pixels x 16 channels from `channel`, all taps inside the input. Each pixel's
+/// sum is one chain of FMAs in tap and input-channel order, whatever `N` is, so a pixel
+/// computed alone equals the same pixel computed in a tile.
 ///
 /// # Safety
 /// The CPU supports AVX2 and FMA; the slices have the lengths `shape` implies;
-/// `interior(shape, out_y, out_x)` holds; `channel + 16 <= out_channels`.
+/// `interior(shape, out_y, out_x, N)` holds; `channel + 16 <= out_channels`.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn interior_tile(
+unsafe fn interior_tile<const N: usize>(
     shape: &ConvShape,
     input: &[f32],
     weight: &[f32],
     out_y: usize,
     out_x: usize,
     channel: usize,
-) -> [[__m256; 2]; PIXELS] {
+) -> [[__m256; 2]; N] {
     let in_channels = shape.in_channels;
     let out_channels = shape.out_channels;
     let stride = shape.stride;
-    let mut sums = [[_mm256_setzero_ps(); 2]; PIXELS];
+    let mut sums = [[_mm256_setzero_ps(); 2]; N];
     for kernel_y in 0..shape.kernel_height {
         let in_y = out_y * stride + kernel_y - shape.padding_height;
         for kernel_x in 0..shape.kernel_width {
@@ -91,11 +93,11 @@ unsafe fn interior_tile(
 /// Adds the bias (and the existing output with [`Accumulate::Add`]) and stores a tile.
 ///
 /// # Safety
-/// The CPU supports AVX2; `channel + 16 <= out_channels`; the four pixels from `first_pixel`
-/// are inside `output`.
+/// The CPU supports AVX2; `channel + 16 <= out_channels`; the `N` pixels from
+/// `first_pixel` are inside `output`.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn store_tile(
-    sums: &[[__m256; 2]; PIXELS],
+unsafe fn store_tile<const N: usize>(
+    sums: &[[__m256; 2]; N],
     bias: &[f32],
     output: &mut [f32],
     out_channels: usize,
@@ -148,48 +150,100 @@ impl Kernels for Avx2 {
         let out_width = shape.out_width();
         for out_y in 0..shape.out_height() {
             let mut out_x = 0;
-            let mut border_from = 0;
-            while out_x + PIXELS <= out_width {
-                if !interior(shape, out_y, out_x) {
+            while out_x < out_width {
+                let pixels = if out_x + PIXELS <= out_width && interior(shape, out_y, out_x, PIXELS)
+                {
+                    PIXELS
+                } else {
+                    1
+                };
+                if pixels == 1 && !interior(shape, out_y, out_x, 1) {
+                    conv_pixels(
+                        shape,
+                        (input, weight, bias),
+                        output,
+                        accumulate,
+                        out_y,
+                        out_x..out_x + 1,
+                    );
                     out_x += 1;
                     continue;
                 }
-                conv_pixels(
-                    shape,
-                    (input, weight, bias),
-                    output,
-                    accumulate,
-                    out_y,
-                    border_from..out_x,
-                );
+                let first_pixel = out_y * out_width + out_x;
                 for channel in (0..shape.out_channels).step_by(CHANNELS) {
                     // SAFETY: `self` exists only when AVX2 and FMA were detected; the asserts
-                    // above fix the slice lengths; `interior` was checked for this tile and
-                    // `channel + 16 <= out_channels` as out_channels is a multiple of 16.
+                    // above fix the slice lengths; `interior` was checked for these pixels
+                    // and `channel + 16 <= out_channels` as out_channels is a multiple of 16.
                     unsafe {
-                        let sums = interior_tile(shape, input, weight, out_y, out_x, channel);
-                        store_tile(
-                            &sums,
-                            bias,
-                            output,
-                            shape.out_channels,
-                            out_y * out_width + out_x,
-                            channel,
-                            accumulate,
-                        );
+                        if pixels == PIXELS {
+                            let sums = interior_tile::<PIXELS>(
+                                shape, input, weight, out_y, out_x, channel,
+                            );
+                            store_tile(
+                                &sums,
+                                bias,
+                                output,
+                                shape.out_channels,
+                                first_pixel,
+                                channel,
+                                accumulate,
+                            );
+                        } else {
+                            let sums =
+                                interior_tile::<1>(shape, input, weight, out_y, out_x, channel);
+                            store_tile(
+                                &sums,
+                                bias,
+                                output,
+                                shape.out_channels,
+                                first_pixel,
+                                channel,
+                                accumulate,
+                            );
+                        }
                     }
                 }
-                out_x += PIXELS;
-                border_from = out_x;
+                out_x += pixels;
             }
-            conv_pixels(
-                shape,
-                (input, weight, bias),
-                output,
-                accumulate,
-                out_y,
-                border_from..out_width,
-            );
+        }
+    }
+
+    fn conv_pixel(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[f32],
+        bias: &[f32],
+        (out_y, out_x): (usize, usize),
+        output: &mut [f32],
+    ) {
+        assert_eq!(input.len(), shape.input_len());
+        assert_eq!(weight.len(), shape.weight_len());
+        assert_eq!(bias.len(), shape.out_channels);
+        assert_eq!(output.len(), shape.out_channels);
+        assert!(out_y < shape.out_height() && out_x < shape.out_width());
+        // The paths `conv` takes for this pixel.
+        if !shape.out_channels.is_multiple_of(CHANNELS)
+            || shape.in_height == 1
+            || !interior(shape, out_y, out_x, 1)
+        {
+            return Scalar.conv_pixel(shape, input, weight, bias, (out_y, out_x), output);
+        }
+        for channel in (0..shape.out_channels).step_by(CHANNELS) {
+            // SAFETY: as in `conv`; `output` holds the pixel's channels, so the one pixel
+            // from index 0 is inside it.
+            unsafe {
+                let sums = interior_tile::<1>(shape, input, weight, out_y, out_x, channel);
+                store_tile(
+                    &sums,
+                    bias,
+                    output,
+                    shape.out_channels,
+                    0,
+                    channel,
+                    Accumulate::Overwrite,
+                );
+            }
         }
     }
 
