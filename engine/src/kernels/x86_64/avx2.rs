@@ -8,6 +8,7 @@ use core::arch::x86_64::{
     _mm256_storeu_ps,
 };
 
+use super::{Run, interior, walk_pixels};
 use crate::kernels::scalar::{Scalar, conv_pixels};
 use crate::kernels::{Accumulate, ConvShape, Kernels, QuantizedRows};
 
@@ -28,18 +29,6 @@ impl Avx2 {
     pub fn detect() -> Option<&'static Avx2> {
         super::has_avx2_fma().then_some(&INSTANCE)
     }
-}
-
-/// Whether every kernel tap of output pixels `out_x .. out_x + pixels` of row `out_y` reads
-/// inside the input (no padding involved).
-fn interior(shape: &ConvShape, out_y: usize, out_x: usize, pixels: usize) -> bool {
-    let top = out_y * shape.stride;
-    let left = out_x * shape.stride;
-    let right = (out_x + pixels - 1) * shape.stride + shape.kernel_width;
-    top >= shape.padding_height
-        && top + shape.kernel_height <= shape.in_height + shape.padding_height
-        && left >= shape.padding_width
-        && right <= shape.in_width + shape.padding_width
 }
 
 /// `N` output pixels x 16 channels from `channel`, all taps inside the input. Each pixel's
@@ -148,64 +137,52 @@ impl Kernels for Avx2 {
             return Scalar.conv(shape, input, weight, bias, output, accumulate);
         }
         let out_width = shape.out_width();
-        for out_y in 0..shape.out_height() {
-            let mut out_x = 0;
-            while out_x < out_width {
-                let pixels = if out_x + PIXELS <= out_width && interior(shape, out_y, out_x, PIXELS)
-                {
-                    PIXELS
-                } else {
-                    1
-                };
-                if pixels == 1 && !interior(shape, out_y, out_x, 1) {
-                    conv_pixels(
-                        shape,
-                        (input, weight, bias),
-                        output,
-                        accumulate,
-                        out_y,
-                        out_x..out_x + 1,
-                    );
-                    out_x += 1;
-                    continue;
-                }
-                let first_pixel = out_y * out_width + out_x;
-                for channel in (0..shape.out_channels).step_by(CHANNELS) {
-                    // SAFETY: `self` exists only when AVX2 and FMA were detected; the asserts
-                    // above fix the slice lengths; `interior` was checked for these pixels
-                    // and `channel + 16 <= out_channels` as out_channels is a multiple of 16.
-                    unsafe {
-                        if pixels == PIXELS {
-                            let sums = interior_tile::<PIXELS>(
-                                shape, input, weight, out_y, out_x, channel,
-                            );
-                            store_tile(
-                                &sums,
-                                bias,
-                                output,
-                                shape.out_channels,
-                                first_pixel,
-                                channel,
-                                accumulate,
-                            );
-                        } else {
-                            let sums =
-                                interior_tile::<1>(shape, input, weight, out_y, out_x, channel);
-                            store_tile(
-                                &sums,
-                                bias,
-                                output,
-                                shape.out_channels,
-                                first_pixel,
-                                channel,
-                                accumulate,
-                            );
-                        }
+        walk_pixels(shape, PIXELS, |out_y, out_x, run| {
+            let Run::Interior(pixels) = run else {
+                let columns = out_x..out_x + 1;
+                return conv_pixels(
+                    shape,
+                    (input, weight, bias),
+                    output,
+                    accumulate,
+                    out_y,
+                    columns,
+                );
+            };
+            let first_pixel = out_y * out_width + out_x;
+            for channel in (0..shape.out_channels).step_by(CHANNELS) {
+                // SAFETY: `self` exists only when AVX2 and FMA were detected; the asserts
+                // above fix the slice lengths; `walk_pixels` checked `interior` for these
+                // pixels, and `channel + 16 <= out_channels` as out_channels is a multiple
+                // of 16.
+                unsafe {
+                    if pixels == PIXELS {
+                        let sums =
+                            interior_tile::<PIXELS>(shape, input, weight, out_y, out_x, channel);
+                        store_tile(
+                            &sums,
+                            bias,
+                            output,
+                            shape.out_channels,
+                            first_pixel,
+                            channel,
+                            accumulate,
+                        );
+                    } else {
+                        let sums = interior_tile::<1>(shape, input, weight, out_y, out_x, channel);
+                        store_tile(
+                            &sums,
+                            bias,
+                            output,
+                            shape.out_channels,
+                            first_pixel,
+                            channel,
+                            accumulate,
+                        );
                     }
                 }
-                out_x += pixels;
             }
-        }
+        });
     }
 
     fn conv_pixel(
