@@ -228,15 +228,36 @@ impl Kernels for Avx2 {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        Scalar.conv_int8(
+        crate::kernels::scalar::assert_int8_lengths(
             shape,
             input,
             weight,
             weight_scales,
             bias,
             output,
-            accumulate,
-        )
+        );
+        if !super::int8::tiles_apply(shape, input) {
+            return Scalar.conv_int8(
+                shape,
+                input,
+                weight,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            );
+        }
+        // SAFETY: `self` exists only when AVX2 and FMA were detected; the lengths were
+        // asserted and `tiles_apply` checked just above.
+        unsafe {
+            super::int8::conv_int8_avx2(
+                shape,
+                input,
+                (weight, weight_scales, bias),
+                output,
+                accumulate,
+            )
+        }
     }
 
     fn conv_weight_int8(
