@@ -730,23 +730,25 @@ fn int8_convolution_is_bit_identical_on_every_backend() {
 }
 
 /// The largest products the int8 kernels can meet: activations all 127 against weights all
-/// +127, all -127, or +127/-127 pairs. `vpmaddubsw` would saturate a pair sum beyond 32767;
-/// here each is ±2 x 127 x 127 = ±32258 and must stay exact. Expected values are the
+/// +127, all -127, +127/-127 pairs, or all -128 (no tool writes it, a file may hold it).
+/// `vpmaddubsw` would saturate a pair sum beyond -32768..=32767; here each is ±32258 or
+/// -32512 and must stay exact. Expected values are the
 /// integers written out (a 1x1 kernel, unit scales, so the f32 result is exact).
 #[test]
 fn int8_convolution_is_exact_at_the_extremes() {
     let in_channels = 512;
     let out_channels = 48;
     let shape = ConvShape::square((3, 5, in_channels), out_channels, 1, 1, 0);
-    for pattern in 0..3 {
+    for pattern in 0..4 {
         // Output channel o: +127 everywhere, -127 everywhere, or pairs (+, +, -, -) giving
         // +32258 and -32258 pair sums that cancel; by pattern and channel parity.
         let weight_of = |input: usize, output: usize| -> i8 {
-            match (pattern + output) % 3 {
+            match (pattern + output) % 4 {
                 0 => 127,
                 1 => -127,
-                _ if input % 4 < 2 => 127,
-                _ => -127,
+                2 if input % 4 < 2 => 127,
+                2 => -127,
+                _ => -128,
             }
         };
         let mut weight = vec![0i8; shape.weight_len()];
@@ -765,6 +767,7 @@ fn int8_convolution_is_exact_at_the_extremes() {
             bias: vec![0.0; out_channels],
         };
         let full = (127 * 127 * in_channels) as f32; // 8,258,048 < 2^24: exact in f32
+        let lowest = -((128 * 127 * in_channels) as f32); // -8,323,072, exact too
         for (name, kernels) in backends() {
             let found = problem.run(
                 kernels,
@@ -772,10 +775,11 @@ fn int8_convolution_is_exact_at_the_extremes() {
                 &vec![0.0; shape.output_len()],
             );
             for (index, &value) in found.iter().enumerate() {
-                let expected = match (pattern + index % out_channels) % 3 {
+                let expected = match (pattern + index % out_channels) % 4 {
                     0 => full,
                     1 => -full,
-                    _ => 0.0,
+                    2 => 0.0,
+                    _ => lowest,
                 };
                 assert_eq!(value, expected, "{name} pattern {pattern} output {index}");
             }

@@ -96,26 +96,35 @@ pub(crate) fn conv_int8_pixels(
             let totals = &mut totals[..width];
             for (row, tap) in taps_inside(shape, out_y, out_x) {
                 let pixel = &input.values[row * in_channels..][..in_channels];
-                let mut sums = [0i32; INT8_BLOCK];
-                let sums = &mut sums[..width];
+                // One partial sum per weight of a quad row, added up per output channel after
+                // the last quad: the inner loop then runs over contiguous weights, which the
+                // compiler vectorizes (integer sums are exact in any order).
+                let mut partials = [0i32; QUAD * INT8_BLOCK];
+                let partials = &mut partials[..width * QUAD];
                 for (quad, values) in pixel.chunks(QUAD).enumerate() {
                     // The padding channels of a last, partial quad have zero weights.
-                    let mut value = [0i32; QUAD];
+                    let mut value = [0i16; QUAD];
                     value
                         .iter_mut()
                         .zip(values)
-                        .for_each(|(v, &q)| *v = q as i32);
+                        .for_each(|(v, &q)| *v = q as i16);
                     let first = int8_quad_index(in_channels, out_channels, tap, quad * QUAD, block);
                     let weights = &weight[first..][..width * QUAD];
-                    for (sum, w) in sums.iter_mut().zip(weights.chunks_exact(QUAD)) {
-                        *sum += value[0] * w[0] as i32
-                            + value[1] * w[1] as i32
-                            + value[2] * w[2] as i32
-                            + value[3] * w[3] as i32;
+                    for (partial, w) in partials
+                        .chunks_exact_mut(QUAD)
+                        .zip(weights.chunks_exact(QUAD))
+                    {
+                        // Any i8 x i8 product fits i16 (at most 128 x 128 = 16384): 16-bit
+                        // multiplies exist on every SIMD ISA, 32-bit ones not on baseline
+                        // x86-64 (SSE2).
+                        for ((partial, &w), &value) in partial.iter_mut().zip(w).zip(&value) {
+                            *partial += (value * w as i16) as i32;
+                        }
                     }
                 }
                 let scale = input.scales[row];
-                for (total, &sum) in totals.iter_mut().zip(sums.iter()) {
+                for (total, partial) in totals.iter_mut().zip(partials.chunks_exact(QUAD)) {
+                    let sum: i32 = partial.iter().sum();
                     *total += sum as f32 * scale;
                 }
             }

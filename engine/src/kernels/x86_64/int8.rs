@@ -126,10 +126,11 @@ type Avx2Totals<const VECTORS: usize> = [[__m256; VECTORS]; PIXELS];
 /// Per quad and 8 output channels, `vpmaddubsw` multiplies the pixel's four activations (u8)
 /// by the four weights (i8) and adds adjacent pairs into i16 lanes, `vpmaddwd` by ones adds
 /// the two pairs into an i32 lane, `vpaddd` accumulates. `vpmaddubsw` saturates its i16 pair
-/// sums; with activations in 0..=127 and weights in -127..=127 a pair sum lies within
-/// ±2 x 127 x 127 = ±32258, inside i16's ±32767, so nothing saturates and the sums are
-/// exact. (An activation of 255 read as u8, i.e. -1 as i8, could reach 2 x 255 x 127 = 64770:
-/// why negative rows never come here.) The i32 sum of a tap cannot overflow either:
+/// sums; with activations in 0..=127 and weights in -127..=127 (the tool's range) a pair sum
+/// lies within ±2 x 127 x 127 = ±32258, and even a weight of -128 (which no tool writes, but
+/// a file may hold) gives at most 2 x 127 x 128 = 32512: inside i16's -32768..=32767, so
+/// nothing saturates and the sums are exact. (An activation of -1 as i8 reads as 255 as u8
+/// and could reach 2 x 255 x 127 = 64770: why negative rows never come here.) The i32 sum of a tap cannot overflow either:
 /// 127 x 127 x in_channels < 2^31 up to 133,000 input channels.
 ///
 /// # Safety
