@@ -1,6 +1,8 @@
-//! Per-stage and end-to-end latency of the f32 engine, one thread, on the scalar reference
-//! kernels and on the fastest this CPU supports, in the same run:
-//! `cargo bench -p scdp-benches --bench engine`.
+//! Per-stage and end-to-end latency of the engine, one thread, in the same run: f32 weights
+//! on the scalar reference kernels and on the fastest this CPU supports; int8 weights on the
+//! scalar reference and on each SIMD backend this CPU can run (groups
+//! `<precision>_<kernels>/<config>`): `cargo bench -p scdp-benches --bench engine`, or
+//! `-- encode` for the trunk alone.
 //!
 //! - `encode`: one frame through preprocessing, the ResNet-18 trunk and the projections;
 //! - `denoise`: the whole 10-step loop (anchors, context, U-Net, DDIM) on a full history;
@@ -14,9 +16,10 @@ use std::time::Duration;
 use criterion::{Criterion, criterion_group, criterion_main};
 use scdp_benches::Setup;
 use scdp_engine::{Backend, Model, Noise, Policy};
+use weights_tool::Quant;
 
-fn bench_config(c: &mut Criterion, name: &'static str, backend: Backend) {
-    let mut setup = Setup::new(name);
+fn bench_config(c: &mut Criterion, name: &'static str, quant: Quant, backend: Backend) {
+    let mut setup = Setup::new_as(name, quant);
     let model = Model::from_bytes(setup.weights.as_slice()).expect("model");
     let frames = setup.config.n_obs_steps as usize;
     let camera = setup.camera;
@@ -39,7 +42,7 @@ fn bench_config(c: &mut Criterion, name: &'static str, backend: Backend) {
             .expect("frame");
     }
 
-    let mut group = c.benchmark_group(format!("f32_{}/{}", policy.kernels_name(), setup.name));
+    let mut group = c.benchmark_group(format!("{quant}_{}/{}", policy.kernels_name(), setup.name));
     group
         .sample_size(10)
         .warm_up_time(Duration::from_secs(1))
@@ -77,9 +80,18 @@ fn bench_config(c: &mut Criterion, name: &'static str, backend: Backend) {
 }
 
 fn benches(c: &mut Criterion) {
-    for backend in [Backend::Scalar, Backend::Auto] {
-        for name in ["metaworld", "panda"] {
-            bench_config(c, name, backend);
+    let int8_backends = [Backend::Scalar, Backend::Avx2, Backend::Avx512];
+    for (quant, backends) in [
+        (Quant::F32, &[Backend::Scalar, Backend::Auto][..]),
+        (Quant::Int8, &int8_backends[..]),
+    ] {
+        for &backend in backends {
+            if scdp_engine::kernels::select(backend).is_none() {
+                continue;
+            }
+            for name in ["metaworld", "panda"] {
+                bench_config(c, name, quant, backend);
+            }
         }
     }
 }

@@ -2,7 +2,8 @@
 //! the seeded synthetic weights, loaded with its inputs from the golden fixture.
 
 use scdp_engine::{ArenaPlan, Camera, ModelConfig};
-use scdp_tests::{Fixture, synthetic_weights_file, tests_dir};
+use scdp_tests::{Fixture, synthetic_weights_file_as, tests_dir};
+use weights_tool::Quant;
 use weights_tool::writer::AlignedBytes;
 
 /// Everything one benchmark needs, owned.
@@ -18,8 +19,13 @@ pub struct Setup {
 }
 
 impl Setup {
-    /// `name` is a golden fixture folder: `tiny`, `metaworld` or `panda`.
+    /// `name` is a golden fixture folder: `tiny`, `metaworld` or `panda`; f32 weights.
     pub fn new(name: &'static str) -> Self {
+        Self::new_as(name, Quant::F32)
+    }
+
+    /// [`Setup::new`] with weights stored at precision `quant`.
+    pub fn new_as(name: &'static str, quant: Quant) -> Self {
         let fixture =
             Fixture::load(&tests_dir().join(format!("fixtures/golden/{name}/basic.safetensors")))
                 .expect("golden fixture");
@@ -27,7 +33,7 @@ impl Setup {
         Setup {
             name,
             config,
-            weights: synthetic_weights_file(&config, fixture.seed).expect("weights"),
+            weights: synthetic_weights_file_as(&config, fixture.seed, quant).expect("weights"),
             arena: AlignedBytes::zeroed(ArenaPlan::new(&config).arena_bytes),
             camera: fixture.camera().expect("camera"),
             images: fixture.images.clone(),

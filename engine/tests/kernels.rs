@@ -112,11 +112,15 @@ fn assert_close(found: &[f32], expected: &[f64], magnitude: &[f64], what: &str) 
     }
 }
 
-/// Every implementation this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2` (as CI sets it) makes
+/// Every implementation this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2,avx512` (as CI sets it) makes
 /// a missing backend a failure instead of a silent skip.
 fn backends() -> Vec<(&'static str, &'static dyn Kernels)> {
     let mut found = Vec::new();
-    for (name, backend) in [("scalar", Backend::Scalar), ("avx2", Backend::Avx2)] {
+    for (name, backend) in [
+        ("scalar", Backend::Scalar),
+        ("avx2", Backend::Avx2),
+        ("avx512", Backend::Avx512),
+    ] {
         if let Some(kernels) = scdp_engine::kernels::select(backend) {
             assert_eq!(
                 kernels.name(),
@@ -419,6 +423,8 @@ fn int8_convolution_sums_exactly_per_tap_then_scales() {
         let rows = shape.in_height * shape.in_width;
         let row_scales: Vec<f32> = (0..rows).map(|_| 0.01 + rng.next().abs()).collect();
         let weight = random_i8(&mut rng, shape.weight_len());
+        let mut packed = vec![1i8; shape.int8_weight_len()];
+        scdp_engine::kernels::pack_int8_quads(&weight, in_channels, out_channels, &mut packed);
         let weight_scales: Vec<f32> = (0..out_channels)
             .map(|_| 0.001 + rng.next().abs() * 0.01)
             .collect();
@@ -427,11 +433,12 @@ fn int8_convolution_sums_exactly_per_tap_then_scales() {
         let input = QuantizedRows {
             values: &values,
             scales: &row_scales,
+            nonnegative: false,
         };
         Scalar.conv_int8(
             &shape,
             &input,
-            &weight,
+            &packed,
             &weight_scales,
             &bias,
             &mut output,
@@ -573,6 +580,240 @@ fn symmetric_quantization_round_trips_within_half_a_step() {
     assert!(ops::quantize_symmetric(&[1.0, f32::INFINITY], &mut [0; 2]).is_nan());
 }
 
+/// One int8 convolution problem: quantized input, kernel in the engine's layout, parameters.
+struct Int8Case {
+    shape: ConvShape,
+    values: Vec<i8>,
+    row_scales: Vec<f32>,
+    nonnegative: bool,
+    /// `[kh, kw, in, out]`, before packing.
+    weight: Vec<i8>,
+    weight_scales: Vec<f32>,
+    bias: Vec<f32>,
+}
+
+impl Int8Case {
+    fn random(rng: &mut Lcg, shape: ConvShape, nonnegative: bool) -> Self {
+        let values = if nonnegative {
+            // ReLU outputs: many zeros, and the extremes.
+            (0..shape.input_len())
+                .map(|_| match rng.below(8) {
+                    0 => 0,
+                    1 => 127,
+                    _ => (rng.next().abs() * 127.0).round() as i8,
+                })
+                .collect()
+        } else {
+            random_i8(rng, shape.input_len())
+        };
+        let rows = shape.in_height * shape.in_width;
+        Int8Case {
+            values,
+            row_scales: (0..rows).map(|_| 0.01 + rng.next().abs()).collect(),
+            nonnegative,
+            weight: random_i8(rng, shape.weight_len()),
+            weight_scales: (0..shape.out_channels)
+                .map(|_| 0.001 + rng.next().abs() * 0.01)
+                .collect(),
+            bias: rng.vec(shape.out_channels),
+            shape,
+        }
+    }
+
+    /// The output of `kernels`, starting from `initial` (for [`Accumulate::Add`]).
+    fn run(&self, kernels: &dyn Kernels, accumulate: Accumulate, initial: &[f32]) -> Vec<f32> {
+        use scdp_engine::kernels::QuantizedRows;
+        let shape = &self.shape;
+        let mut packed = vec![0i8; shape.int8_weight_len()];
+        scdp_engine::kernels::pack_int8_quads(
+            &self.weight,
+            shape.in_channels,
+            shape.out_channels,
+            &mut packed,
+        );
+        let input = QuantizedRows {
+            values: &self.values,
+            scales: &self.row_scales,
+            nonnegative: self.nonnegative,
+        };
+        let mut output = initial.to_vec();
+        kernels.conv_int8(
+            shape,
+            &input,
+            &packed,
+            &self.weight_scales,
+            &self.bias,
+            &mut output,
+            accumulate,
+        );
+        output
+    }
+}
+
+fn assert_same_bits(found: &[f32], expected: &[f32], what: &str) {
+    assert_eq!(found.len(), expected.len(), "{what}: length");
+    for (index, (f, e)) in found.iter().zip(expected).enumerate() {
+        assert!(
+            f.to_bits() == e.to_bits(),
+            "{what}[{index}]: {f} vs {e} (bits {:#x} vs {:#x})",
+            f.to_bits(),
+            e.to_bits()
+        );
+    }
+}
+
+/// Every backend gives the scalar reference's int8 convolution bit for bit, over the shapes
+/// the tiles treat differently: kernels 1/3/7, strides 1/2, padding, maps of one and a few
+/// pixels (tiles wrapping onto the next row, short last tiles), input channels from 4 to 512
+/// and ones not a multiple of 4, output channels off the 64/16/8-channel blocks, both
+/// accumulation modes, nonnegative (ReLU) rows and rows with negative values.
+#[test]
+fn int8_convolution_is_bit_identical_on_every_backend() {
+    let mut rng = Lcg(29);
+    let backends = backends();
+    for case in 0..120 {
+        let kernel = [1, 3, 7][rng.below(3)];
+        let stride = 1 + rng.below(2);
+        let padding = rng.below(kernel / 2 + 1);
+        let in_channels = match case % 6 {
+            0 => [4, 8, 12][rng.below(3)],
+            1 => 4 * (1 + rng.below(40)),
+            2 => [256, 512][rng.below(2)],
+            3 => [1, 3, 6, 13][rng.below(4)],
+            _ => 4 * (1 + rng.below(20)),
+        };
+        let out_channels = match case % 4 {
+            0 => 64 * (1 + rng.below(3)),
+            1 => 16 * (1 + rng.below(6)) + [0, 8, 5][rng.below(3)],
+            2 => 1 + rng.below(30),
+            _ => 1 + rng.below(150),
+        };
+        // Big channel counts on small maps, to keep the debug-build reference quick.
+        let large = in_channels * kernel * kernel > 1200;
+        let (height, width) = match case % 5 {
+            0 => (1, 1),
+            1 => (2, 3),
+            _ if large => (1 + rng.below(4), 1 + rng.below(5)),
+            _ => (1 + rng.below(9), 1 + rng.below(11)),
+        };
+        let shape = ConvShape {
+            in_height: height,
+            in_width: width,
+            in_channels,
+            out_channels,
+            kernel_height: kernel,
+            kernel_width: kernel,
+            stride,
+            padding_height: padding,
+            padding_width: padding,
+        };
+        if height.min(width) + 2 * padding < kernel {
+            continue; // no output pixel
+        }
+        let nonnegative = case % 7 != 0;
+        let problem = Int8Case::random(&mut rng, shape, nonnegative);
+        let initial = rng.vec(shape.output_len());
+        for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
+            let expected = problem.run(&Scalar, accumulate, &initial);
+            for (name, kernels) in &backends {
+                let found = problem.run(*kernels, accumulate, &initial);
+                assert_same_bits(
+                    &found,
+                    &expected,
+                    &format!(
+                        "case {case} {name} {shape:?} {accumulate:?} nonnegative {nonnegative}"
+                    ),
+                );
+            }
+        }
+    }
+}
+
+/// The largest products the int8 kernels can meet: activations all 127 against weights all
+/// +127, all -127, +127/-127 pairs, or all -128 (no tool writes it, a file may hold it).
+/// `vpmaddubsw` would saturate a pair sum beyond -32768..=32767; here each is ±32258 or
+/// -32512 and must stay exact. Expected values are the
+/// integers written out (a 1x1 kernel, unit scales, so the f32 result is exact).
+#[test]
+fn int8_convolution_is_exact_at_the_extremes() {
+    let in_channels = 512;
+    let out_channels = 48;
+    let shape = ConvShape::square((3, 5, in_channels), out_channels, 1, 1, 0);
+    for pattern in 0..4 {
+        // Output channel o: +127 everywhere, -127 everywhere, or pairs (+, +, -, -) giving
+        // +32258 and -32258 pair sums that cancel; by pattern and channel parity.
+        let weight_of = |input: usize, output: usize| -> i8 {
+            match (pattern + output) % 4 {
+                0 => 127,
+                1 => -127,
+                2 if input % 4 < 2 => 127,
+                2 => -127,
+                _ => -128,
+            }
+        };
+        let mut weight = vec![0i8; shape.weight_len()];
+        for input in 0..in_channels {
+            for output in 0..out_channels {
+                weight[input * out_channels + output] = weight_of(input, output);
+            }
+        }
+        let problem = Int8Case {
+            shape,
+            values: vec![127; shape.input_len()],
+            row_scales: vec![1.0; 15],
+            nonnegative: true,
+            weight,
+            weight_scales: vec![1.0; out_channels],
+            bias: vec![0.0; out_channels],
+        };
+        let full = (127 * 127 * in_channels) as f32; // 8,258,048 < 2^24: exact in f32
+        let lowest = -((128 * 127 * in_channels) as f32); // -8,323,072, exact too
+        for (name, kernels) in backends() {
+            let found = problem.run(
+                kernels,
+                Accumulate::Overwrite,
+                &vec![0.0; shape.output_len()],
+            );
+            for (index, &value) in found.iter().enumerate() {
+                let expected = match (pattern + index % out_channels) % 4 {
+                    0 => full,
+                    1 => -full,
+                    2 => 0.0,
+                    _ => lowest,
+                };
+                assert_eq!(value, expected, "{name} pattern {pattern} output {index}");
+            }
+        }
+    }
+}
+
+#[test]
+fn quantizing_reports_whether_every_value_is_nonnegative() {
+    use scdp_engine::kernels::QuantizeScratch;
+    let mut rng = Lcg(31);
+    let (rows, row_len) = (6, 20);
+    let relu: Vec<f32> = rng.vec(rows * row_len).iter().map(|x| x.max(0.0)).collect();
+    let mut signed = relu.clone();
+    signed[77] = -0.5;
+    // Rounds to zero next to the row's largest value: still nonnegative once quantized.
+    let mut tiny_negative = relu.clone();
+    tiny_negative[3] = -1e-6;
+    for (input, expected) in [(&relu, true), (&signed, false), (&tiny_negative, true)] {
+        let mut values = vec![0i8; input.len()];
+        let mut scales = vec![0.0f32; rows];
+        let mut scratch = QuantizeScratch {
+            values: &mut values,
+            scales: &mut scales,
+        };
+        let quantized = scratch.quantize(input, row_len);
+        assert_eq!(quantized.nonnegative, expected);
+        assert_eq!(
+            quantized.nonnegative,
+            quantized.values.iter().all(|&q| q >= 0)
+        );
+    }
+}
+
 /// `conv_pixel` and `conv_int8_pixel` must give, bit for bit, what the same backend's dense
 /// kernel writes at that pixel (the pyramid evaluates large projections only at the cells
 /// the anchors sample). Every pixel of random 2-D shapes, borders and tiles included, with
@@ -586,7 +827,11 @@ fn single_pixel_convolution_equals_the_dense_kernel_bit_for_bit() {
             let kernel = [1, 3, 5][rng.below(3)];
             let stride = 1 + rng.below(2);
             let padding = rng.below(kernel / 2 + 1);
-            let in_channels = 1 + rng.below(24);
+            let in_channels = if case % 3 == 0 {
+                1 + rng.below(24)
+            } else {
+                4 * (1 + rng.below(8))
+            };
             let out_channels = if case % 2 == 0 {
                 16 * (1 + rng.below(4))
             } else {
@@ -611,14 +856,19 @@ fn single_pixel_convolution_equals_the_dense_kernel_bit_for_bit() {
                 &mut dense,
                 Accumulate::Overwrite,
             );
-            let values = random_i8(&mut rng, shape.input_len());
+            // ReLU-like inputs, flagged, so the SIMD int8 tiles run.
+            let values: Vec<i8> = random_i8(&mut rng, shape.input_len())
+                .iter()
+                .map(|v| v.saturating_abs())
+                .collect();
             let rows = shape.in_height * shape.in_width;
             let row_scales: Vec<f32> = (0..rows).map(|_| 0.01 + rng.next().abs()).collect();
             let quantized = QuantizedRows {
                 values: &values,
                 scales: &row_scales,
+                nonnegative: true,
             };
-            let weight_int8 = random_i8(&mut rng, shape.weight_len());
+            let weight_int8 = random_i8(&mut rng, shape.int8_weight_len());
             let weight_scales: Vec<f32> = (0..out_channels)
                 .map(|_| 0.001 + rng.next().abs() * 0.01)
                 .collect();

@@ -108,12 +108,14 @@ impl Fixture {
     }
 }
 
-/// The kernel backends this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2` (as CI sets it)
+/// The kernel backends this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2,avx512` (as CI sets it)
 /// turns a missing backend into a failure instead of a silent skip.
 pub fn available_backends() -> Vec<Backend> {
     let mut found = vec![Backend::Scalar];
-    if scdp_engine::kernels::select(Backend::Avx2).is_some() {
-        found.push(Backend::Avx2);
+    for backend in [Backend::Avx2, Backend::Avx512] {
+        if scdp_engine::kernels::select(backend).is_some() {
+            found.push(backend);
+        }
     }
     let required = std::env::var("SCDP_REQUIRE_BACKENDS").unwrap_or_default();
     for name in required.split(',').filter(|n| !n.is_empty()) {

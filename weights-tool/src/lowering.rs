@@ -644,14 +644,38 @@ pub fn store_keeping(
     let specs = crate::writer::tensor_specs(config)?;
     let mut stored = BTreeMap::new();
     for (name, values) in lowered {
-        let int8_channels = specs
-            .iter()
-            .find(|spec| spec.name == name)
-            .and_then(|spec| spec.int8_scales.as_ref().map(|(_, channels)| *channels));
+        let spec = specs.iter().find(|spec| spec.name == name);
+        let int8_channels =
+            spec.and_then(|spec| spec.int8_scales.as_ref().map(|(_, channels)| *channels));
         let keep = keep_f32(&name);
-        let tensor = match (quant, int8_channels) {
-            (Quant::Int8, Some(channels)) if !keep => {
-                quantize_per_channel(&values, channels, name.ends_with(".film.weight"))
+        let tensor = match (quant, int8_channels, spec) {
+            (Quant::Int8, Some(channels), Some(spec)) if !keep => {
+                let quantized =
+                    quantize_per_channel(&values, channels, name.ends_with(".film.weight"));
+                match (quantized, spec.dims.as_slice()) {
+                    // 2-D convolutions take int8 activations: their kernels go to the layout of
+                    // the integer dot products (docs/FORMAT.md).
+                    (Stored::Int8 { values, scales }, &[kh, kw, input, output]) => {
+                        let shape = scdp_engine::kernels::ConvShape {
+                            in_height: 1,
+                            in_width: 1,
+                            in_channels: input,
+                            out_channels: output,
+                            kernel_height: kh,
+                            kernel_width: kw,
+                            stride: 1,
+                            padding_height: 0,
+                            padding_width: 0,
+                        };
+                        let mut packed = vec![0i8; shape.int8_weight_len()];
+                        scdp_engine::kernels::pack_int8_quads(&values, input, output, &mut packed);
+                        Stored::Int8 {
+                            values: packed,
+                            scales,
+                        }
+                    }
+                    (quantized, _) => quantized,
+                }
             }
             _ => Stored::F32(values),
         };

@@ -129,8 +129,18 @@ pub fn write_weights_file(
                 let Some((scale_name, channels)) = &spec.int8_scales else {
                     bail!("internal: `{}` cannot be stored as int8", spec.name);
                 };
+                // 2-D convolution kernels are stored in input-channel quads (docs/FORMAT.md).
+                let stored_elements = match spec.dims.as_slice() {
+                    &[kh, kw, input, output] => {
+                        kh * kw
+                            * scdp_engine::kernels::int8_quads(input)
+                            * scdp_engine::kernels::QUAD
+                            * output
+                    }
+                    _ => elements,
+                };
                 ensure!(
-                    values.len() == elements && scales.len() == *channels,
+                    values.len() == stored_elements && scales.len() == *channels,
                     "internal: int8 `{}` does not match {:?}",
                     spec.name,
                     spec.dims

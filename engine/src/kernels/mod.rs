@@ -21,6 +21,8 @@ pub enum Backend {
     Scalar,
     /// x86-64 AVX2 + FMA.
     Avx2,
+    /// x86-64 AVX-512 (F, BW, VL) with VNNI for the int8 convolutions; AVX2 for the rest.
+    Avx512,
 }
 
 /// The implementation for `backend`, or `None` when this CPU cannot run it. Detection uses
@@ -29,7 +31,8 @@ pub fn select(backend: Backend) -> Option<&'static dyn Kernels> {
     match backend {
         Backend::Scalar => Some(&scalar::Scalar),
         Backend::Avx2 => avx2(),
-        Backend::Auto => avx2().or(Some(&scalar::Scalar)),
+        Backend::Avx512 => avx512(),
+        Backend::Auto => avx512().or_else(avx2).or(Some(&scalar::Scalar)),
     }
 }
 
@@ -38,8 +41,18 @@ fn avx2() -> Option<&'static dyn Kernels> {
     x86_64::avx2::Avx2::detect().map(|kernels| kernels as &'static dyn Kernels)
 }
 
+#[cfg(target_arch = "x86_64")]
+fn avx512() -> Option<&'static dyn Kernels> {
+    x86_64::avx512::Avx512::detect().map(|kernels| kernels as &'static dyn Kernels)
+}
+
 #[cfg(not(target_arch = "x86_64"))]
 fn avx2() -> Option<&'static dyn Kernels> {
+    None
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+fn avx512() -> Option<&'static dyn Kernels> {
     None
 }
 
@@ -132,6 +145,54 @@ impl ConvShape {
     pub const fn weight_len(&self) -> usize {
         self.kernel_height * self.kernel_width * self.in_channels * self.out_channels
     }
+
+    /// Length of the kernel in the int8 layout of [`Kernels::conv_int8`]: input channels in
+    /// zero-padded quads, see [`int8_quad_index`].
+    pub const fn int8_weight_len(&self) -> usize {
+        self.kernel_height
+            * self.kernel_width
+            * int8_quads(self.in_channels)
+            * QUAD
+            * self.out_channels
+    }
+}
+
+/// Input channels grouped per output channel in the int8 kernels of 2-D convolutions.
+pub const QUAD: usize = 4;
+
+/// Quads covering `in_channels` (the last one zero-padded when `in_channels % 4 != 0`).
+pub const fn int8_quads(in_channels: usize) -> usize {
+    in_channels.div_ceil(QUAD)
+}
+
+/// Where weight `(tap, input, output)` of a 2-D convolution lives in its int8 kernel: the
+/// layout `[kh, kw, ceil(in / 4), out, 4]` ("input-channel quads"). For each tap, quad and
+/// output channel, four consecutive input channels are adjacent, which is what the integer
+/// dot-product instructions (`vpdpbusd`, `vpmaddubsw`) multiply and add at once; 16 output
+/// channels of one quad are one 64-byte load.
+pub const fn int8_quad_index(
+    in_channels: usize,
+    out_channels: usize,
+    tap: usize,
+    input: usize,
+    output: usize,
+) -> usize {
+    ((tap * int8_quads(in_channels) + input / QUAD) * out_channels + output) * QUAD + input % QUAD
+}
+
+/// Packs `weight` (`[taps, in, out]`, the f32 layout) into the int8 quad layout `packed`
+/// (`taps * ceil(in / 4) * 4 * out` values; the padding channels are written as 0).
+pub fn pack_int8_quads(weight: &[i8], in_channels: usize, out_channels: usize, packed: &mut [i8]) {
+    let taps = weight.len() / (in_channels * out_channels).max(1);
+    packed.fill(0);
+    for tap in 0..taps {
+        for input in 0..in_channels {
+            for output in 0..out_channels {
+                packed[int8_quad_index(in_channels, out_channels, tap, input, output)] =
+                    weight[(tap * in_channels + input) * out_channels + output];
+            }
+        }
+    }
 }
 
 /// Whether a convolution overwrites its output or adds to it (residual connections).
@@ -196,12 +257,11 @@ pub trait Kernels: Sync {
         scalar::conv_int8_pixel(
             shape,
             input,
-            weight,
-            weight_scales,
-            bias,
+            (weight, weight_scales, bias),
             output,
             Accumulate::Overwrite,
             pixel,
+            0..shape.out_channels,
         );
     }
 
@@ -222,11 +282,15 @@ pub trait Kernels: Sync {
     /// `output[r] = base[r] + sum_c weight[r, c] input[c]` for a row-major `[rows, cols]`.
     fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]);
 
-    /// [`conv`](Self::conv) on int8 data with one activation scale per input position. For
-    /// each output position and kernel tap, the integer sum `p[o] = sum_c q_in[c] q_w[c, o]`
-    /// is exact in i32 (the part every implementation must reproduce bit for bit); then
-    /// `acc[o] += p[o] as f32 * row_scale(tap's input position)` over the taps in kernel
-    /// order, and `output[o] (+)= acc[o] * weight_scales[o] + bias[o]`.
+    /// [`conv`](Self::conv) on int8 data with one activation scale per input position, the
+    /// kernel in the quad layout of [`int8_quad_index`] (`shape.int8_weight_len()` values).
+    /// For each output position and kernel tap inside the input, the integer sum
+    /// `p[o] = sum_c q_in[c] q_w[c, o]` is exact in i32 (the part every implementation must
+    /// reproduce bit for bit); then `acc[o] += p[o] as f32 * row_scale(tap's input position)`
+    /// (a product, then a sum: two roundings, not a fused multiply-add) over the taps in kernel
+    /// order from `acc[o] = 0`, and `output[o] = acc[o] * weight_scales[o] + bias[o]` (with
+    /// [`Accumulate::Add`], `output[o] += that`), again unfused. Every implementation
+    /// therefore gives bit-identical outputs.
     #[allow(clippy::too_many_arguments)]
     fn conv_int8(
         &self,
@@ -272,6 +336,10 @@ pub trait Kernels: Sync {
 pub struct QuantizedRows<'a> {
     pub values: &'a [i8],
     pub scales: &'a [f32],
+    /// Every value is in 0..=127 (true of every ReLU output): the values then read the same
+    /// as u8, which the unsigned-by-signed integer dot products need. `false` only promises
+    /// nothing.
+    pub nonnegative: bool,
 }
 
 /// Arena space for quantizing one layer input: values and one scale per row.
@@ -288,14 +356,21 @@ impl QuantizeScratch<'_> {
         let rows = input.len() / row_len;
         let values = &mut self.values[..input.len()];
         let scales = &mut self.scales[..rows];
+        let mut nonnegative = true;
         for ((row, out), scale) in input
             .chunks_exact(row_len)
             .zip(values.chunks_exact_mut(row_len))
             .zip(scales.iter_mut())
         {
-            *scale = ops::quantize_symmetric(row, out);
+            let row_nonnegative;
+            (*scale, row_nonnegative) = ops::quantize_symmetric_signs(row, out);
+            nonnegative &= row_nonnegative;
         }
-        QuantizedRows { values, scales }
+        QuantizedRows {
+            values,
+            scales,
+            nonnegative,
+        }
     }
 }
 
@@ -379,6 +454,9 @@ pub fn convolve_pixel(
             let input = QuantizedRows {
                 values: &bytemuck::cast_slice(values)[..shape.input_len()],
                 scales: &scales[..shape.in_height * shape.in_width],
+                // Not kept with the input; `false` is always correct (every kernel's paths
+                // give the same bits, the flag only lets the fast ones run).
+                nonnegative: false,
             };
             kernels.conv_int8_pixel(shape, &input, weights, weight_scales, bias, pixel, output)
         }

@@ -132,6 +132,12 @@ pub fn add_activate(target: &mut [f32], source: &[f32], activation: Activation) 
 /// all-zero input, NaN when the input holds NaN or infinity (so the NaN reaches the result
 /// and the engine reports it instead of acting on it).
 pub fn quantize_symmetric(input: &[f32], output: &mut [i8]) -> f32 {
+    quantize_symmetric_signs(input, output).0
+}
+
+/// [`quantize_symmetric`], also telling whether every quantized value is nonnegative (found
+/// in the quantizing loop itself: no second pass over the output).
+pub fn quantize_symmetric_signs(input: &[f32], output: &mut [i8]) -> (f32, bool) {
     let largest = input.iter().fold(0.0f32, |m, &x| {
         if x.abs() > m || x.is_nan() {
             x.abs()
@@ -141,15 +147,17 @@ pub fn quantize_symmetric(input: &[f32], output: &mut [i8]) -> f32 {
     });
     if !largest.is_finite() {
         output.fill(0);
-        return f32::NAN;
+        return (f32::NAN, true);
     }
     if largest == 0.0 {
         output.fill(0);
-        return 1.0;
+        return (1.0, true);
     }
     let inverse = 127.0 / largest;
+    let mut lowest = 0i8;
     for (q, &x) in output.iter_mut().zip(input) {
         *q = libm::roundf(x * inverse).clamp(-127.0, 127.0) as i8;
+        lowest = lowest.min(*q);
     }
-    largest / 127.0
+    (largest / 127.0, lowest >= 0)
 }

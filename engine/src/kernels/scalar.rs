@@ -1,7 +1,7 @@
 //! The reference implementation of [`Kernels`]: plain loops, written for clarity. Faster
 //! implementations are tested against it.
 
-use super::{Accumulate, ConvShape, Kernels, QuantizedRows};
+use super::{Accumulate, ConvShape, Kernels, QUAD, QuantizedRows, int8_quad_index};
 
 /// Output channels accumulated at once in the int8 kernels (an i32 block on the stack).
 const INT8_BLOCK: usize = 128;
@@ -74,52 +74,116 @@ pub(crate) fn conv_pixel(
     }
 }
 
-/// The int8 convolution at output pixel `(out_y, out_x)` into `out` (its channels), in the
-/// order [`Kernels::conv_int8`] prescribes.
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn conv_int8_pixel(
+/// The slice lengths [`Kernels::conv_int8`] promises.
+pub(crate) fn assert_int8_lengths(
     shape: &ConvShape,
     input: &QuantizedRows<'_>,
     weight: &[i8],
     weight_scales: &[f32],
     bias: &[f32],
+    output: &[f32],
+) {
+    assert_eq!(input.values.len(), shape.input_len());
+    assert_eq!(input.scales.len(), shape.in_height * shape.in_width);
+    assert_eq!(weight.len(), shape.int8_weight_len());
+    assert_eq!(weight_scales.len(), shape.out_channels);
+    assert_eq!(bias.len(), shape.out_channels);
+    assert_eq!(output.len(), shape.output_len());
+}
+
+/// The int8 convolution of output `positions` (row-major over the output map), output
+/// `channels` only: the whole reference kernel, and the tails of the SIMD ones.
+pub(crate) fn conv_int8_pixels(
+    shape: &ConvShape,
+    input: &QuantizedRows<'_>,
+    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+    positions: core::ops::Range<usize>,
+    channels: core::ops::Range<usize>,
+) {
+    let out_width = shape.out_width();
+    let out_channels = shape.out_channels;
+    for position in positions {
+        let out = &mut output[position * out_channels..][..out_channels];
+        let pixel = (position / out_width, position % out_width);
+        let parameters = (weight, weight_scales, bias);
+        conv_int8_pixel(
+            shape,
+            input,
+            parameters,
+            out,
+            accumulate,
+            pixel,
+            channels.clone(),
+        );
+    }
+}
+
+/// The int8 convolution at output pixel `(out_y, out_x)`, output `channels` only, into
+/// `out` (the pixel's `out_channels` values), in the order [`Kernels::conv_int8`] prescribes.
+pub(crate) fn conv_int8_pixel(
+    shape: &ConvShape,
+    input: &QuantizedRows<'_>,
+    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     out: &mut [f32],
     accumulate: Accumulate,
     (out_y, out_x): (usize, usize),
+    channels: core::ops::Range<usize>,
 ) {
     let in_channels = shape.in_channels;
     let out_channels = shape.out_channels;
-    for block in (0..out_channels).step_by(INT8_BLOCK) {
-        let width = (out_channels - block).min(INT8_BLOCK);
-        let mut totals = [0.0f32; INT8_BLOCK];
-        let totals = &mut totals[..width];
-        for (row, tap) in taps_inside(shape, out_y, out_x) {
-            let pixel = &input.values[row * in_channels..][..in_channels];
-            let taps = &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
-            let mut sums = [0i32; INT8_BLOCK];
-            let sums = &mut sums[..width];
-            for (&value, weights) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
-                let value = value as i32;
-                for (sum, &w) in sums.iter_mut().zip(&weights[block..block + width]) {
-                    *sum += value * w as i32;
+    {
+        for block in channels.clone().step_by(INT8_BLOCK) {
+            let width = (channels.end - block).min(INT8_BLOCK);
+            let mut totals = [0.0f32; INT8_BLOCK];
+            let totals = &mut totals[..width];
+            for (row, tap) in taps_inside(shape, out_y, out_x) {
+                let pixel = &input.values[row * in_channels..][..in_channels];
+                // One partial sum per weight of a quad row, added up per output channel after
+                // the last quad: the inner loop then runs over contiguous weights, which the
+                // compiler vectorizes (integer sums are exact in any order).
+                let mut partials = [0i32; QUAD * INT8_BLOCK];
+                let partials = &mut partials[..width * QUAD];
+                for (quad, values) in pixel.chunks(QUAD).enumerate() {
+                    // The padding channels of a last, partial quad have zero weights.
+                    let mut value = [0i16; QUAD];
+                    value
+                        .iter_mut()
+                        .zip(values)
+                        .for_each(|(v, &q)| *v = q as i16);
+                    let first = int8_quad_index(in_channels, out_channels, tap, quad * QUAD, block);
+                    let weights = &weight[first..][..width * QUAD];
+                    for (partial, w) in partials
+                        .chunks_exact_mut(QUAD)
+                        .zip(weights.chunks_exact(QUAD))
+                    {
+                        // Any i8 x i8 product fits i16 (at most 128 x 128 = 16384): 16-bit
+                        // multiplies exist on every SIMD ISA, 32-bit ones not on baseline
+                        // x86-64 (SSE2).
+                        for ((partial, &w), &value) in partial.iter_mut().zip(w).zip(&value) {
+                            *partial += (value * w as i16) as i32;
+                        }
+                    }
+                }
+                let scale = input.scales[row];
+                for (total, partial) in totals.iter_mut().zip(partials.chunks_exact(QUAD)) {
+                    let sum: i32 = partial.iter().sum();
+                    *total += sum as f32 * scale;
                 }
             }
-            let scale = input.scales[row];
-            for (total, &sum) in totals.iter_mut().zip(sums.iter()) {
-                *total += sum as f32 * scale;
-            }
-        }
-        let out = &mut out[block..block + width];
-        for (((o, &total), &scale), &b) in out
-            .iter_mut()
-            .zip(totals.iter())
-            .zip(&weight_scales[block..block + width])
-            .zip(&bias[block..block + width])
-        {
-            let value = total * scale + b;
-            match accumulate {
-                Accumulate::Overwrite => *o = value,
-                Accumulate::Add => *o += value,
+            let out = &mut out[block..block + width];
+            for (((o, &total), &scale), &b) in out
+                .iter_mut()
+                .zip(totals.iter())
+                .zip(&weight_scales[block..block + width])
+                .zip(&bias[block..block + width])
+            {
+                let value = total * scale + b;
+                match accumulate {
+                    Accumulate::Overwrite => *o = value,
+                    Accumulate::Add => *o += value,
+                }
             }
         }
     }
@@ -218,27 +282,16 @@ impl Kernels for Scalar {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        let out_width = shape.out_width();
-        let out_channels = shape.out_channels;
-        assert_eq!(input.values.len(), shape.input_len());
-        assert_eq!(input.scales.len(), shape.in_height * shape.in_width);
-        assert_eq!(weight.len(), shape.weight_len());
-        assert_eq!(weight_scales.len(), out_channels);
-        assert_eq!(bias.len(), out_channels);
-        assert_eq!(output.len(), shape.output_len());
-        for (position, out) in output.chunks_exact_mut(out_channels).enumerate() {
-            let pixel = (position / out_width, position % out_width);
-            conv_int8_pixel(
-                shape,
-                input,
-                weight,
-                weight_scales,
-                bias,
-                out,
-                accumulate,
-                pixel,
-            );
-        }
+        assert_int8_lengths(shape, input, weight, weight_scales, bias, output);
+        conv_int8_pixels(
+            shape,
+            input,
+            (weight, weight_scales, bias),
+            output,
+            accumulate,
+            0..shape.out_height() * shape.out_width(),
+            0..shape.out_channels,
+        );
     }
 
     fn conv_weight_int8(

@@ -22,7 +22,7 @@ pub struct Avx2 {
     _checked: (),
 }
 
-static INSTANCE: Avx2 = Avx2 { _checked: () };
+pub(super) static INSTANCE: Avx2 = Avx2 { _checked: () };
 
 impl Avx2 {
     /// `None` unless the CPU and OS support AVX2 and FMA.
@@ -259,15 +259,36 @@ impl Kernels for Avx2 {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        Scalar.conv_int8(
+        crate::kernels::scalar::assert_int8_lengths(
             shape,
             input,
             weight,
             weight_scales,
             bias,
             output,
-            accumulate,
-        )
+        );
+        if !super::int8::tiles_apply(shape, input) {
+            return Scalar.conv_int8(
+                shape,
+                input,
+                weight,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            );
+        }
+        // SAFETY: `self` exists only when AVX2 and FMA were detected; the lengths were
+        // asserted and `tiles_apply` checked just above.
+        unsafe {
+            super::int8::conv_int8_avx2(
+                shape,
+                input,
+                (weight, weight_scales, bias),
+                output,
+                accumulate,
+            )
+        }
     }
 
     fn conv_weight_int8(

@@ -1,7 +1,9 @@
 //! x86-64 kernels, chosen at run time from what the CPU reports (CPUID works without std).
 
 pub mod avx2;
+pub mod avx512;
 pub mod avx512_f32;
+mod int8;
 
 use core::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
 
@@ -82,4 +84,25 @@ pub fn has_avx2_fma() -> bool {
     // Leaf 0 reports the highest leaf; leaf 7 (structured features) is read only if present.
     let highest = __cpuid(0).eax;
     highest >= 7 && __cpuid_count(7, 0).ebx & (1 << 5) != 0
+}
+
+/// AVX-512 F, BW, VL and VNNI are present and the OS saves the opmask and ZMM registers
+/// (XCR0 bits 5 to 7) as well as the YMM ones (bits 1 and 2).
+pub fn has_avx512_vnni() -> bool {
+    // CPUID is safe on x86-64; leaf 1 exists on every such processor.
+    let osxsave = __cpuid(1).ecx & (1 << 27) != 0;
+    if !osxsave || __cpuid(0).eax < 7 {
+        return false;
+    }
+    let features = __cpuid_count(7, 0);
+    let foundation = features.ebx & (1 << 16) != 0;
+    let byte_word = features.ebx & (1 << 30) != 0;
+    let vector_length = features.ebx & (1 << 31) != 0;
+    let vnni = features.ecx & (1 << 11) != 0;
+    if !(foundation && byte_word && vector_length && vnni) {
+        return false;
+    }
+    // SAFETY: OSXSAVE is set, so XGETBV may be executed.
+    let state = unsafe { os_enabled_state() };
+    state & 0b1110_0110 == 0b1110_0110
 }
