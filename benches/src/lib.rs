@@ -2,6 +2,7 @@
 //! the seeded synthetic weights, loaded with its inputs from the golden fixture.
 
 pub mod macs;
+pub mod peak;
 
 use scdp_engine::{ArenaPlan, Camera, ModelConfig};
 use scdp_tests::{Fixture, synthetic_weights_file, tests_dir};
