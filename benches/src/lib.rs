@@ -1,6 +1,9 @@
 //! Benchmark set-up shared by the criterion benches: a model of a named configuration with
 //! the seeded synthetic weights, loaded with its inputs from the golden fixture.
 
+pub mod macs;
+pub mod peak;
+
 use scdp_engine::{ArenaPlan, Camera, ModelConfig};
 use scdp_tests::{Fixture, synthetic_weights_file_as, tests_dir};
 use weights_tool::Quant;
