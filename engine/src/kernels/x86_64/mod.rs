@@ -1,6 +1,7 @@
 //! x86-64 kernels, chosen at run time from what the CPU reports (CPUID works without std).
 
 pub mod avx2;
+pub mod sequence;
 
 use core::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
 
