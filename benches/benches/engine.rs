@@ -3,7 +3,8 @@
 //! `cargo bench -p scdp-benches --bench engine`.
 //!
 //! - `encode`: one frame through preprocessing, the ResNet-18 trunk and the projections;
-//! - `denoise`: the whole 10-step loop (anchors, context, U-Net, DDIM) on a full history;
+//! - `denoise`: the whole 10-step loop (anchors, context, U-Net, DDIM) on a full history
+//!   (also with an int8 weights file: the U-Net's weight-only int8 kernels);
 //! - `end_to_end`: every frame of the history encoded, then the loop (a cold start);
 //! - `streaming`: the newest frame encoded, then the loop (steady state: older frames were
 //!   encoded when they arrived).
@@ -14,6 +15,8 @@ use std::time::Duration;
 use criterion::{Criterion, criterion_group, criterion_main};
 use scdp_benches::Setup;
 use scdp_engine::{Backend, Model, Noise, Policy};
+use scdp_tests::synthetic_weights_file_as;
+use weights_tool::Quant;
 
 fn bench_config(c: &mut Criterion, name: &'static str, backend: Backend) {
     let mut setup = Setup::new(name);
@@ -76,10 +79,45 @@ fn bench_config(c: &mut Criterion, name: &'static str, backend: Backend) {
     group.finish();
 }
 
+/// The denoising loop with weight-only int8 U-Net weights (the same inputs as the f32 group).
+fn bench_int8_denoise(c: &mut Criterion, name: &'static str, backend: Backend) {
+    let Setup {
+        config,
+        mut arena,
+        camera,
+        images,
+        state,
+        noise,
+        ..
+    } = Setup::new(name);
+    let weights = synthetic_weights_file_as(&config, 0, Quant::Int8).expect("int8 weights");
+    let model = Model::from_bytes(weights.as_slice()).expect("model");
+    let mut policy = Policy::with_backend(&model, arena.as_mut_slice(), backend).expect("backend");
+    policy.set_camera(camera);
+    let frames = config.n_obs_steps as usize;
+    let state_dim = config.state_dim as usize;
+    for (frame, state) in images
+        .chunks_exact(images.len() / frames)
+        .zip(state.chunks_exact(state_dim))
+    {
+        policy.push_observation(frame, state).expect("frame");
+    }
+    let mut group = c.benchmark_group(format!("int8_{}/{name}", policy.kernels_name()));
+    group
+        .sample_size(10)
+        .warm_up_time(Duration::from_secs(1))
+        .measurement_time(Duration::from_secs(5));
+    group.bench_function("denoise", |b| {
+        b.iter(|| black_box(policy.infer(Noise::Given(&noise)).unwrap().action()[0]))
+    });
+    group.finish();
+}
+
 fn benches(c: &mut Criterion) {
     for backend in [Backend::Scalar, Backend::Auto] {
         for name in ["metaworld", "panda"] {
             bench_config(c, name, backend);
+            bench_int8_denoise(c, name, backend);
         }
     }
 }
