@@ -234,11 +234,18 @@ fn convolution_matches_pytorch_definition(backend: &str, kernels: &dyn Kernels) 
 
 #[test]
 fn upsample_matches_pytorch_conv_transpose_definition() {
+    for (name, kernels) in backends() {
+        upsample_matches_conv_transpose(name, kernels);
+    }
+}
+
+fn upsample_matches_conv_transpose(backend: &str, kernels: &dyn Kernels) {
     let mut rng = Lcg(11);
-    for case in 0..20 {
+    for case in 0..30 {
         let length = 1 + rng.below(9);
-        let in_channels = 1 + rng.below(6);
-        let out_channels = 1 + rng.below(6);
+        let in_channels = 1 + rng.below(40);
+        // Up to 16 + 8 + 7: every channel block of the SIMD kernels.
+        let out_channels = 1 + rng.below(40);
         let input_ct = rng.vec(in_channels * length);
         // PyTorch ConvTranspose1d weight: [in, out, 4]; y[o, t] = b[o] + sum x[i, s] w[i, o, k]
         // over t = 2 s + k - 1.
@@ -277,7 +284,7 @@ fn upsample_matches_pytorch_conv_transpose_definition() {
             }
         }
         let mut output = vec![f32::NAN; expected.len()];
-        Scalar.upsample_conv(
+        kernels.upsample_conv(
             length,
             in_channels,
             out_channels,
@@ -290,7 +297,7 @@ fn upsample_matches_pytorch_conv_transpose_definition() {
             &output,
             &expected,
             &magnitude,
-            &format!("upsample case {case}"),
+            &format!("{backend} upsample case {case} ({length}, {in_channels}, {out_channels})"),
         );
     }
 }
@@ -298,18 +305,25 @@ fn upsample_matches_pytorch_conv_transpose_definition() {
 #[test]
 fn matvec_adds_base() {
     let mut rng = Lcg(3);
-    let (rows, cols) = (13, 29);
-    let weight = rng.vec(rows * cols);
-    let input = rng.vec(cols);
-    let base = rng.vec(rows);
-    let mut output = vec![0.0; rows];
-    Scalar.matvec(&weight, &input, &base, &mut output);
-    for r in 0..rows {
-        let expected: f64 = base[r] as f64
-            + (0..cols)
-                .map(|c| weight[r * cols + c] as f64 * input[c] as f64)
-                .sum::<f64>();
-        assert!((output[r] as f64 - expected).abs() < 1e-5, "row {r}");
+    for (name, kernels) in backends() {
+        // Odd lengths reach the SIMD kernels' 32-, 8- and 1-wide parts.
+        for (rows, cols) in [(13, 29), (1, 1), (5, 8), (3, 33), (7, 71), (40, 784)] {
+            let weight = rng.vec(rows * cols);
+            let input = rng.vec(cols);
+            let base = rng.vec(rows);
+            let mut output = vec![f32::NAN; rows];
+            kernels.matvec(&weight, &input, &base, &mut output);
+            for r in 0..rows {
+                let terms = (0..cols).map(|c| weight[r * cols + c] as f64 * input[c] as f64);
+                let expected = base[r] as f64 + terms.clone().sum::<f64>();
+                let magnitude = base[r].abs() as f64 + terms.map(f64::abs).sum::<f64>();
+                assert!(
+                    (output[r] as f64 - expected).abs() <= 1e-5 * magnitude.max(1.0),
+                    "{name} {rows}x{cols} row {r}: {} vs {expected}",
+                    output[r]
+                );
+            }
+        }
     }
 }
 
@@ -492,19 +506,38 @@ fn int8_convolution_sums_exactly_per_tap_then_scales() {
 
 #[test]
 fn weight_only_int8_matches_dequantized_f32_kernels() {
+    for (name, kernels) in backends() {
+        weight_only_int8_matches_dequantized(name, kernels);
+    }
+}
+
+/// Random int8 weights, with the extremes -128 and 127 forced in now and then.
+fn random_weights_with_extremes(rng: &mut Lcg, len: usize) -> Vec<i8> {
+    random_i8(rng, len)
+        .into_iter()
+        .enumerate()
+        .map(|(i, q)| match i % 11 {
+            3 => i8::MIN,
+            7 => i8::MAX,
+            _ => q,
+        })
+        .collect()
+}
+
+fn weight_only_int8_matches_dequantized(backend: &str, kernels: &dyn Kernels) {
     let mut rng = Lcg(23);
-    for case in 0..30 {
+    for case in 0..40 {
         let kernel = [1, 3, 5][rng.below(3)];
         let shape = ConvShape::sequence(
-            kernel + rng.below(12),
+            kernel + rng.below(14),
             1 + rng.below(50),
             1 + rng.below(200),
             kernel,
             1 + rng.below(2),
-            kernel / 2,
+            rng.below(kernel / 2 + 1),
         );
         let input = rng.vec(shape.input_len());
-        let weight = random_i8(&mut rng, shape.weight_len());
+        let weight = random_weights_with_extremes(&mut rng, shape.weight_len());
         let scales: Vec<f32> = (0..shape.out_channels)
             .map(|_| 0.001 + rng.next().abs() * 0.01)
             .collect();
@@ -514,46 +547,140 @@ fn weight_only_int8_matches_dequantized_f32_kernels() {
             .enumerate()
             .map(|(i, &q)| q as f32 * scales[i % shape.out_channels])
             .collect();
-        let mut expected = vec![0.0; shape.output_len()];
-        Scalar.conv(
-            &shape,
-            &input,
-            &dequantized,
-            &bias,
-            &mut expected,
-            Accumulate::Overwrite,
-        );
-        let mut found = vec![0.0; shape.output_len()];
-        Scalar.conv_weight_int8(
-            &shape,
-            &input,
-            &weight,
-            &scales,
-            &bias,
-            &mut found,
-            Accumulate::Overwrite,
-        );
-        for (i, (f, e)) in found.iter().zip(&expected).enumerate() {
+        for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
+            let before = rng.vec(shape.output_len());
+            let mut expected = before.clone();
+            Scalar.conv(
+                &shape,
+                &input,
+                &dequantized,
+                &bias,
+                &mut expected,
+                accumulate,
+            );
+            let mut found = before;
+            kernels.conv_weight_int8(
+                &shape, &input, &weight, &scales, &bias, &mut found, accumulate,
+            );
+            for (i, (f, e)) in found.iter().zip(&expected).enumerate() {
+                assert!(
+                    (f - e).abs() <= 1e-4 * (1.0 + e.abs()),
+                    "{backend} case {case} {accumulate:?} [{i}]: {f} vs {e}"
+                );
+            }
+        }
+    }
+    for (rows, cols) in [(37, 91), (1, 7), (4, 32), (9, 784), (3, 45)] {
+        let weight = random_weights_with_extremes(&mut rng, rows * cols);
+        let scales: Vec<f32> = (0..rows).map(|_| 0.002 + rng.next().abs() * 0.01).collect();
+        let input = rng.vec(cols);
+        let base = rng.vec(rows);
+        let mut found = vec![f32::NAN; rows];
+        kernels.matvec_weight_int8(&weight, &scales, &input, &base, &mut found);
+        for r in 0..rows {
+            let terms = (0..cols).map(|c| weight[r * cols + c] as f64 * input[c] as f64);
+            let expected = base[r] as f64 + scales[r] as f64 * terms.clone().sum::<f64>();
+            let magnitude =
+                base[r].abs() as f64 + scales[r] as f64 * terms.map(f64::abs).sum::<f64>();
             assert!(
-                (f - e).abs() <= 1e-4 * (1.0 + e.abs()),
-                "case {case} [{i}]: {f} vs {e}"
+                (found[r] as f64 - expected).abs() <= 1e-5 * magnitude.max(1.0),
+                "{backend} {rows}x{cols} row {r}: {} vs {expected}",
+                found[r]
             );
         }
     }
-    let (rows, cols) = (37, 91);
-    let weight = random_i8(&mut rng, rows * cols);
-    let scales: Vec<f32> = (0..rows).map(|_| 0.002 + rng.next().abs() * 0.01).collect();
-    let input = rng.vec(cols);
-    let base = rng.vec(rows);
-    let mut found = vec![0.0; rows];
-    Scalar.matvec_weight_int8(&weight, &scales, &input, &base, &mut found);
-    for r in 0..rows {
-        let expected: f64 = base[r] as f64
-            + scales[r] as f64
-                * (0..cols)
-                    .map(|c| weight[r * cols + c] as f64 * input[c] as f64)
-                    .sum::<f64>();
-        assert!((found[r] as f64 - expected).abs() < 1e-5, "row {r}");
+}
+
+/// The U-Net's sequence shapes and their awkward cousins, on every backend against the
+/// textbook convolution: lengths around the 4-position tiles, channel counts that leave
+/// 8-wide and scalar tails, the k3 s2 p1 downsampling, and int8 weight-only against the
+/// same textbook convolution of the dequantized weights.
+#[test]
+fn sequence_convolutions_match_pytorch_definition() {
+    let mut rng = Lcg(31);
+    let mut shapes = Vec::new();
+    for length in [1, 2, 3, 4, 5, 8, 16, 17] {
+        for (kernel, stride, padding) in [(5, 1, 2), (3, 2, 1), (1, 1, 0), (3, 1, 0), (4, 2, 2)] {
+            if length + 2 * padding < kernel {
+                continue;
+            }
+            let in_channels = 1 + rng.below(70);
+            let out_channels = [1, 7, 8, 13, 16, 24, 31, 40, 129][rng.below(9)];
+            shapes.push(ConvShape::sequence(
+                length,
+                in_channels,
+                out_channels,
+                kernel,
+                stride,
+                padding,
+            ));
+        }
+    }
+    for (name, kernels) in backends() {
+        for shape in &shapes {
+            let input_ct = rng.vec(shape.input_len());
+            let input = to_hwc(&input_ct, shape.in_channels, 1, shape.in_width);
+            let bias = rng.vec(shape.out_channels);
+            let quantized = random_weights_with_extremes(&mut rng, shape.weight_len());
+            let scales: Vec<f32> = (0..shape.out_channels)
+                .map(|_| 0.001 + rng.next().abs() * 0.01)
+                .collect();
+            // Row-major PyTorch `[out, in, k]` weights, f32 and dequantized int8.
+            let float_oik = rng.vec(shape.weight_len());
+            let (k, i, o) = (shape.kernel_width, shape.in_channels, shape.out_channels);
+            let mut int8_packed = vec![0i8; shape.weight_len()];
+            let mut dequantized_oik = vec![0.0; shape.weight_len()];
+            for (index, &q) in quantized.iter().enumerate() {
+                // `quantized` is already packed `[k, in, out]`.
+                let (tap, rest) = (index / (i * o), index % (i * o));
+                let (input_channel, output_channel) = (rest / o, rest % o);
+                int8_packed[index] = q;
+                dequantized_oik[(output_channel * i + input_channel) * k + tap] =
+                    q as f32 * scales[output_channel];
+            }
+            let float_packed = pack_oihw(&float_oik, o, i, 1, k);
+            let what = format!("{name} {shape:?}");
+            for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
+                let before = if accumulate == Accumulate::Add {
+                    rng.vec(shape.output_len())
+                } else {
+                    vec![f32::NAN; shape.output_len()]
+                };
+                let plus_before = |expected: Vec<f64>| -> Vec<f64> {
+                    match accumulate {
+                        Accumulate::Overwrite => expected,
+                        Accumulate::Add => expected
+                            .iter()
+                            .zip(&before)
+                            .map(|(e, b)| e + *b as f64)
+                            .collect(),
+                    }
+                };
+                let (expected, magnitude) = reference_conv(shape, &input_ct, &float_oik, &bias);
+                let mut output = before.clone();
+                kernels.conv(shape, &input, &float_packed, &bias, &mut output, accumulate);
+                assert_close(&output, &plus_before(expected), &magnitude, &what);
+
+                let (expected, magnitude) =
+                    reference_conv(shape, &input_ct, &dequantized_oik, &bias);
+                let mut output = before.clone();
+                kernels.conv_weight_int8(
+                    shape,
+                    &input,
+                    &int8_packed,
+                    &scales,
+                    &bias,
+                    &mut output,
+                    accumulate,
+                );
+                assert_close(
+                    &output,
+                    &plus_before(expected),
+                    &magnitude,
+                    &format!("int8 weights {what}"),
+                );
+            }
+        }
     }
 }
 
@@ -838,7 +965,12 @@ fn single_pixel_convolution_equals_the_dense_kernel_bit_for_bit() {
                 1 + rng.below(40)
             };
             let shape = ConvShape::square(
-                (kernel + rng.below(9), kernel + rng.below(9), in_channels),
+                // 2-D maps: at least two rows (the method's contract).
+                (
+                    kernel.max(2) + rng.below(9),
+                    kernel + rng.below(9),
+                    in_channels,
+                ),
                 out_channels,
                 kernel,
                 stride,

@@ -221,7 +221,8 @@ pub trait Kernels: Sync {
 
     /// Output pixel `pixel = (out_y, out_x)` of [`conv`](Self::conv) with
     /// [`Accumulate::Overwrite`], written to `output` (`out_channels` values): bit for bit
-    /// what `conv` writes there on this implementation. The pyramid evaluates large
+    /// what `conv` writes there on this implementation, for 2-D maps (`in_height > 1`; the
+    /// 1-D sequence kernels have no single-position form). The pyramid evaluates large
     /// projections only at the cells the anchors sample, and must get the dense values.
     #[allow(clippy::too_many_arguments)]
     fn conv_pixel(

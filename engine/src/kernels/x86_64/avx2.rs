@@ -1,13 +1,15 @@
 //! AVX2 + FMA kernels. The convolution keeps a 4-pixel x 16-channel tile of outputs in eight
 //! YMM accumulators: per input channel and tap, two weight loads and four broadcasts feed
 //! eight FMAs (the scalar reference reloads and stores its output for every product).
-//! Border pixels and everything else use the scalar reference.
+//! Border pixels use the scalar reference; the U-Net's 1-D convolutions, upsampling and
+//! matrix-vector products use the weight-streaming [`sequence`] kernels.
 
 use core::arch::x86_64::{
     __m256, _mm256_add_ps, _mm256_fmadd_ps, _mm256_loadu_ps, _mm256_set1_ps, _mm256_setzero_ps,
     _mm256_storeu_ps,
 };
 
+use super::sequence::{self, Sequence};
 use super::{Run, interior, walk_pixels};
 use crate::kernels::scalar::{Scalar, conv_pixels};
 use crate::kernels::{Accumulate, ConvShape, Kernels, QuantizedRows};
@@ -29,6 +31,20 @@ impl Avx2 {
     pub fn detect() -> Option<&'static Avx2> {
         super::has_avx2_fma().then_some(&INSTANCE)
     }
+}
+
+/// The 1-D convolution `shape` describes (one input row, one kernel row, no vertical
+/// padding), for the sequence kernels.
+fn as_sequence(shape: &ConvShape) -> Option<Sequence> {
+    (shape.in_height == 1 && shape.kernel_height == 1 && shape.padding_height == 0).then(|| {
+        Sequence::convolution(
+            shape.in_width,
+            (shape.in_channels, shape.out_channels),
+            shape.kernel_width,
+            shape.stride,
+            shape.padding_width,
+        )
+    })
 }
 
 /// `N` output pixels x 16 channels from `channel`, all taps inside the input. Each pixel's
@@ -129,11 +145,14 @@ impl Kernels for Avx2 {
         assert_eq!(weight.len(), shape.weight_len());
         assert_eq!(bias.len(), shape.out_channels);
         assert_eq!(output.len(), shape.output_len());
-        // Narrow layers (the tiny model, the noise head) are not worth a tail path. The U-Net's
-        // sequences (height 1, 16 steps) are memory-bound: the scalar loop streams each weight
-        // row once per step, while these tiles stride across rows (measured slower: 82.6 vs
-        // 68.4 ms for metaworld's 10-step loop).
-        if !shape.out_channels.is_multiple_of(CHANNELS) || shape.in_height == 1 {
+        if let Some(sequence) = as_sequence(shape) {
+            // SAFETY: `self` exists only when AVX2 and FMA were detected.
+            return unsafe {
+                sequence::convolve_f32(&sequence, input, weight, bias, output, accumulate)
+            };
+        }
+        // Narrow layers (the tiny model's trunk) are not worth a tail path.
+        if !shape.out_channels.is_multiple_of(CHANNELS) {
             return Scalar.conv(shape, input, weight, bias, output, accumulate);
         }
         let out_width = shape.out_width();
@@ -200,8 +219,8 @@ impl Kernels for Avx2 {
         assert_eq!(output.len(), shape.out_channels);
         assert!(out_y < shape.out_height() && out_x < shape.out_width());
         // The paths `conv` takes for this pixel.
-        if !shape.out_channels.is_multiple_of(CHANNELS)
-            || shape.in_height == 1
+        if as_sequence(shape).is_some()
+            || !shape.out_channels.is_multiple_of(CHANNELS)
             || !interior(shape, out_y, out_x, 1)
         {
             return Scalar.conv_pixel(shape, input, weight, bias, (out_y, out_x), output);
@@ -234,19 +253,21 @@ impl Kernels for Avx2 {
         bias: &[f32],
         output: &mut [f32],
     ) {
-        Scalar.upsample_conv(
-            length,
-            in_channels,
-            out_channels,
-            input,
-            weight,
-            bias,
-            output,
-        )
+        assert_eq!(input.len(), length * in_channels);
+        assert_eq!(weight.len(), 4 * in_channels * out_channels);
+        assert_eq!(output.len(), 2 * length * out_channels);
+        for parity in 0..2 {
+            let half = Sequence::upsample_half(length, in_channels, out_channels, parity);
+            // SAFETY: `self` exists only when AVX2 and FMA were detected.
+            unsafe {
+                sequence::convolve_f32(&half, input, weight, bias, output, Accumulate::Overwrite)
+            };
+        }
     }
 
     fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
-        Scalar.matvec(weight, input, base, output)
+        // SAFETY: `self` exists only when AVX2 and FMA were detected.
+        unsafe { sequence::matvec(weight, None, input, base, output) }
     }
 
     fn conv_int8(
@@ -301,15 +322,32 @@ impl Kernels for Avx2 {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        Scalar.conv_weight_int8(
-            shape,
-            input,
-            weight,
-            weight_scales,
-            bias,
-            output,
-            accumulate,
-        )
+        assert_eq!(input.len(), shape.input_len());
+        assert_eq!(weight.len(), shape.weight_len());
+        assert_eq!(output.len(), shape.output_len());
+        match as_sequence(shape) {
+            // SAFETY: `self` exists only when AVX2 and FMA were detected.
+            Some(sequence) => unsafe {
+                sequence::convolve(
+                    &sequence,
+                    input,
+                    weight,
+                    Some(weight_scales),
+                    bias,
+                    output,
+                    accumulate,
+                )
+            },
+            None => Scalar.conv_weight_int8(
+                shape,
+                input,
+                weight,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            ),
+        }
     }
 
     fn matvec_weight_int8(
@@ -320,6 +358,7 @@ impl Kernels for Avx2 {
         base: &[f32],
         output: &mut [f32],
     ) {
-        Scalar.matvec_weight_int8(weight, row_scales, input, base, output)
+        // SAFETY: `self` exists only when AVX2 and FMA were detected.
+        unsafe { sequence::matvec(weight, Some(row_scales), input, base, output) }
     }
 }

@@ -4,6 +4,7 @@ pub mod avx2;
 pub mod avx512;
 pub mod avx512_f32;
 mod int8;
+pub mod sequence;
 
 use core::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
 

@@ -1,0 +1,612 @@
+//! AVX2 + FMA kernels for the conditional U-Net: 1-D convolutions over short sequences
+//! (`[T, C]`, T = 16, 8 or 4), its transposed upsampling convolution, and the FiLM
+//! matrix-vector products. Their ~15.6 M weights are read at every denoising step, so these
+//! kernels are memory-bound and read each weight once per call where they can:
+//! - int8 weights (15.6 MB, which the L3 cache can hold): a register tile of 4 positions x 16
+//!   channels; each weight row of the tile is widened once (`vpmovsxbd` + `vcvtdq2ps`) and fed
+//!   to all four positions, the per-channel scale applied once at the end;
+//! - f32 weights (62 MB, from DRAM at every step): on sequences of up to 8 positions, each
+//!   weight row is streamed in memory order and applied to every position; longer sequences
+//!   use the register tile.
+
+use core::arch::x86_64::{
+    __m128i, __m256, _mm_add_ps, _mm_add_ss, _mm_cvtss_f32, _mm_loadl_epi64, _mm_movehl_ps,
+    _mm_shuffle_ps, _mm256_add_ps, _mm256_broadcast_ss, _mm256_castps256_ps128,
+    _mm256_cvtepi8_epi32, _mm256_cvtepi32_ps, _mm256_extractf128_ps, _mm256_fmadd_ps,
+    _mm256_loadu_ps, _mm256_set1_ps, _mm256_setzero_ps, _mm256_storeu_ps,
+};
+
+use crate::kernels::Accumulate;
+
+/// Output positions per register tile: 4 positions x 16 channels are eight accumulators,
+/// leaving registers for the two weight vectors and the broadcast input.
+const POSITIONS: usize = 4;
+
+/// A weight element type: f32, or int8 widened to f32 on load.
+pub trait WeightLane: Copy {
+    /// Eight consecutive weights as f32 lanes.
+    ///
+    /// # Safety
+    /// The CPU supports AVX2; eight elements from `source` are readable.
+    unsafe fn load8(source: *const Self) -> __m256;
+
+    fn to_f32(self) -> f32;
+}
+
+impl WeightLane for f32 {
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    unsafe fn load8(source: *const f32) -> __m256 {
+        // SAFETY: the caller guarantees eight readable floats.
+        unsafe { _mm256_loadu_ps(source) }
+    }
+
+    fn to_f32(self) -> f32 {
+        self
+    }
+}
+
+impl WeightLane for i8 {
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    unsafe fn load8(source: *const i8) -> __m256 {
+        // SAFETY: the caller guarantees eight readable bytes, which is all `loadl` reads.
+        unsafe {
+            _mm256_cvtepi32_ps(_mm256_cvtepi8_epi32(_mm_loadl_epi64(
+                source.cast::<__m128i>(),
+            )))
+        }
+    }
+
+    fn to_f32(self) -> f32 {
+        self as f32
+    }
+}
+
+/// A 1-D convolution seen from its outputs. Output position `t` (of `positions`) is stored in
+/// output row `out_first + t * out_step`; its tap `i` (of `taps`) multiplies weight block
+/// `first_tap + i * tap_step` (`[in, out]`) with input row `t * stride + first_offset +
+/// i * offset_step`, and is skipped when that row is outside `0 .. in_length` (zero padding).
+/// A convolution has `first_tap = 0, tap_step = 1, first_offset = -padding, offset_step = 1`;
+/// the even and odd outputs of the stride-2 transposed convolution are two such sequences.
+#[derive(Clone, Copy, Debug)]
+pub struct Sequence {
+    pub in_length: usize,
+    pub in_channels: usize,
+    pub out_channels: usize,
+    pub positions: usize,
+    pub stride: usize,
+    pub taps: usize,
+    pub first_tap: usize,
+    pub tap_step: usize,
+    pub first_offset: isize,
+    pub offset_step: isize,
+    pub out_first: usize,
+    pub out_step: usize,
+}
+
+impl Sequence {
+    /// A convolution with kernel `taps`, `stride` and zero `padding`.
+    pub fn convolution(
+        in_length: usize,
+        (in_channels, out_channels): (usize, usize),
+        taps: usize,
+        stride: usize,
+        padding: usize,
+    ) -> Self {
+        let positions = crate::config::conv_output(in_length, taps, stride, padding);
+        Sequence {
+            in_length,
+            in_channels,
+            out_channels,
+            positions,
+            stride,
+            taps,
+            first_tap: 0,
+            tap_step: 1,
+            first_offset: -(padding as isize),
+            offset_step: 1,
+            out_first: 0,
+            out_step: 1,
+        }
+    }
+
+    /// Outputs `2 m + parity` of PyTorch's ConvTranspose1d(kernel 4, stride 2, padding 1):
+    /// output `t` takes input `s` through tap `t + 1 - 2 s`, so even outputs use taps 1 and 3
+    /// on inputs `m` and `m - 1`, odd outputs taps 0 and 2 on inputs `m + 1` and `m`.
+    pub fn upsample_half(
+        length: usize,
+        in_channels: usize,
+        out_channels: usize,
+        parity: usize,
+    ) -> Self {
+        Sequence {
+            in_length: length,
+            in_channels,
+            out_channels,
+            positions: length,
+            stride: 1,
+            taps: 2,
+            first_tap: 1 - parity,
+            tap_step: 2,
+            first_offset: parity as isize,
+            offset_step: -1,
+            out_first: parity,
+            out_step: 2,
+        }
+    }
+
+    fn tap(&self, index: usize) -> (usize, isize) {
+        (
+            self.first_tap + index * self.tap_step,
+            self.first_offset + index as isize * self.offset_step,
+        )
+    }
+
+    /// The positions `first .. first + count` whose input row for a tap with this `offset`
+    /// is inside the input, as a range relative to `first` (empty when `start >= end`).
+    fn inside(&self, offset: isize, first: usize, count: usize) -> (usize, usize) {
+        let stride = self.stride as isize;
+        let first = first as isize;
+        // Smallest t with t * stride + offset >= 0, and smallest t with it >= in_length.
+        let low = if offset >= 0 {
+            0
+        } else {
+            (-offset + stride - 1) / stride
+        };
+        let high = (self.in_length as isize - offset + stride - 1).max(0) / stride;
+        let start = (low - first).clamp(0, count as isize) as usize;
+        let end = (high - first).clamp(0, count as isize) as usize;
+        (start, end)
+    }
+
+    fn weight_blocks(&self) -> usize {
+        if self.taps == 0 {
+            0
+        } else {
+            self.first_tap + (self.taps - 1) * self.tap_step + 1
+        }
+    }
+
+    fn output_rows(&self) -> usize {
+        if self.positions == 0 {
+            0
+        } else {
+            self.out_first + (self.positions - 1) * self.out_step + 1
+        }
+    }
+}
+
+/// Per-channel factors applied to the sums before the bias: the int8 weight scales.
+pub type Scales<'a> = Option<&'a [f32]>;
+
+/// Runs `sequence`: `output[row, o] (+)= sum * scales[o] + bias[o]`.
+///
+/// # Safety
+/// The CPU supports AVX2 and FMA.
+///
+/// # Panics
+/// If a slice is shorter than `sequence` needs (the model code never passes such slices).
+#[target_feature(enable = "avx2,fma")]
+pub unsafe fn convolve<W: WeightLane>(
+    sequence: &Sequence,
+    input: &[f32],
+    weight: &[W],
+    scales: Scales<'_>,
+    bias: &[f32],
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    let (in_channels, out_channels) = (sequence.in_channels, sequence.out_channels);
+    assert!(input.len() >= sequence.in_length * in_channels);
+    assert!(weight.len() >= sequence.weight_blocks() * in_channels * out_channels);
+    assert!(output.len() >= sequence.output_rows() * out_channels);
+    assert_eq!(bias.len(), out_channels);
+    if let Some(scales) = scales {
+        assert_eq!(scales.len(), out_channels);
+    }
+    if out_channels == 0 {
+        return;
+    }
+    let vector_channels = out_channels - out_channels % 8;
+    // The output holds the running sums: bias first, then one scaled partial sum per chunk.
+    for position in 0..sequence.positions {
+        let row = sequence.out_first + position * sequence.out_step;
+        let out = &mut output[row * out_channels..][..vector_channels];
+        match accumulate {
+            Accumulate::Overwrite => out.copy_from_slice(&bias[..vector_channels]),
+            Accumulate::Add => out.iter_mut().zip(bias).for_each(|(o, b)| *o += b),
+        }
+    }
+    for first in (0..sequence.positions).step_by(POSITIONS) {
+        let mut channel = 0;
+        while channel + 16 <= vector_channels {
+            // SAFETY: AVX2 and FMA are enabled here; the asserts above bound every row the
+            // tile reads or writes; `channel + 16 <= out_channels`.
+            unsafe {
+                let sums = tile::<W, 2>(sequence, input, weight, first, channel);
+                add_scaled(sequence, &sums, first, channel, scales, output);
+            }
+            channel += 16;
+        }
+        if channel < vector_channels {
+            // SAFETY: as above, with `channel + 8 == vector_channels <= out_channels`.
+            unsafe {
+                let sums = tile::<W, 1>(sequence, input, weight, first, channel);
+                add_scaled(sequence, &sums, first, channel, scales, output);
+            }
+        }
+    }
+    if vector_channels < out_channels {
+        narrow_channels(
+            sequence,
+            input,
+            weight,
+            (scales, bias),
+            output,
+            accumulate,
+            vector_channels,
+        );
+    }
+}
+
+/// Up to this many output positions, f32 weights are streamed ([`convolve_streaming`]);
+/// longer sequences reuse each weight enough for the register tiles to win.
+const STREAMING_POSITIONS: usize = 8;
+
+/// [`convolve`] with f32 weights, by whichever loop is faster for the sequence length.
+///
+/// # Safety
+/// The CPU supports AVX2 and FMA.
+///
+/// # Panics
+/// If a slice is shorter than `sequence` needs (the model code never passes such slices).
+#[target_feature(enable = "avx2,fma")]
+pub unsafe fn convolve_f32(
+    sequence: &Sequence,
+    input: &[f32],
+    weight: &[f32],
+    bias: &[f32],
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    // SAFETY: AVX2 and FMA are enabled here.
+    unsafe {
+        if sequence.positions <= STREAMING_POSITIONS {
+            convolve_streaming(sequence, input, weight, bias, output, accumulate)
+        } else {
+            convolve(sequence, input, weight, None, bias, output, accumulate)
+        }
+    }
+}
+
+/// [`convolve`] for f32 weights, read strictly in memory order: each weight row is applied
+/// to every output position before the next, the sums kept in `output` (in the L1 cache).
+/// With f32 weights the U-Net's layers come from DRAM at every step, and one sequential
+/// stream is what the hardware prefetcher serves best (measured: the register tiles, which
+/// walk rows `out_channels` apart, ran 2-4x slower than this on cold weights).
+///
+/// # Safety
+/// The CPU supports AVX2 and FMA.
+///
+/// # Panics
+/// If a slice is shorter than `sequence` needs (the model code never passes such slices).
+#[target_feature(enable = "avx2,fma")]
+pub unsafe fn convolve_streaming(
+    sequence: &Sequence,
+    input: &[f32],
+    weight: &[f32],
+    bias: &[f32],
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    let (in_channels, out_channels) = (sequence.in_channels, sequence.out_channels);
+    assert!(input.len() >= sequence.in_length * in_channels);
+    assert!(weight.len() >= sequence.weight_blocks() * in_channels * out_channels);
+    assert!(output.len() >= sequence.output_rows() * out_channels);
+    assert_eq!(bias.len(), out_channels);
+    for position in 0..sequence.positions {
+        let row = sequence.out_first + position * sequence.out_step;
+        let out = &mut output[row * out_channels..][..out_channels];
+        match accumulate {
+            Accumulate::Overwrite => out.copy_from_slice(bias),
+            Accumulate::Add => out.iter_mut().zip(bias).for_each(|(o, b)| *o += b),
+        }
+    }
+    for index in 0..sequence.taps {
+        let (tap, offset) = sequence.tap(index);
+        let (start, end) = sequence.inside(offset, 0, sequence.positions);
+        let block = &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
+        for (c, weights) in block.chunks_exact(out_channels).enumerate() {
+            for position in start..end {
+                let input_row = (position * sequence.stride) as isize + offset;
+                let x = input[input_row as usize * in_channels + c];
+                let row = sequence.out_first + position * sequence.out_step;
+                // SAFETY: AVX2 and FMA are enabled here.
+                unsafe {
+                    add_multiple(
+                        &mut output[row * out_channels..][..out_channels],
+                        x,
+                        weights,
+                    )
+                };
+            }
+        }
+    }
+}
+
+/// `out += x * weights` (equal lengths).
+///
+/// # Safety
+/// The CPU supports AVX2 and FMA.
+#[inline]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn add_multiple(out: &mut [f32], x: f32, weights: &[f32]) {
+    let x8 = _mm256_set1_ps(x);
+    let mut out_chunks = out.chunks_exact_mut(8);
+    let mut weight_chunks = weights.chunks_exact(8);
+    for (o, w) in (&mut out_chunks).zip(&mut weight_chunks) {
+        // SAFETY: both chunks hold eight floats.
+        unsafe {
+            let sum = _mm256_fmadd_ps(x8, _mm256_loadu_ps(w.as_ptr()), _mm256_loadu_ps(o.as_ptr()));
+            _mm256_storeu_ps(o.as_mut_ptr(), sum);
+        }
+    }
+    for (o, &w) in out_chunks
+        .into_remainder()
+        .iter_mut()
+        .zip(weight_chunks.remainder())
+    {
+        *o += x * w;
+    }
+}
+
+/// The sums of output positions `first ..` (up to four) for output channels `channel ..
+/// channel + 8 VECS`.
+///
+/// # Safety
+/// The CPU supports AVX2 and FMA; the slices have the lengths [`convolve`] asserts;
+/// `channel + 8 VECS <= out_channels`.
+#[inline]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn tile<W: WeightLane, const VECS: usize>(
+    sequence: &Sequence,
+    input: &[f32],
+    weight: &[W],
+    first: usize,
+    channel: usize,
+) -> [[__m256; VECS]; POSITIONS] {
+    let (in_channels, out_channels) = (sequence.in_channels, sequence.out_channels);
+    let count = (sequence.positions - first).min(POSITIONS);
+    let input_step = sequence.stride * in_channels;
+    let mut sums = [[_mm256_setzero_ps(); VECS]; POSITIONS];
+    for index in 0..sequence.taps {
+        let (tap, offset) = sequence.tap(index);
+        let (start, end) = sequence.inside(offset, first, count);
+        if start >= end {
+            continue;
+        }
+        let row = ((first + start) * sequence.stride) as isize + offset;
+        // SAFETY: `inside` keeps `row` and the rows `input_step` apart up to `end` inside the
+        // input; the tap's weight block is inside `weight` (asserted by `convolve`).
+        let rows = (
+            unsafe { input.as_ptr().add(row as usize * in_channels) },
+            input_step,
+        );
+        let weights = unsafe {
+            weight
+                .as_ptr()
+                .add(tap * in_channels * out_channels + channel)
+        };
+        macro_rules! run {
+            ($(($start:literal, $end:literal)),*) => {
+                match (start, end) {
+                    $(
+                        // SAFETY: see above; the range was computed by `inside`.
+                        ($start, $end) => unsafe {
+                            accumulate::<W, VECS, $start, $end>(
+                                &mut sums, rows, weights, out_channels, in_channels,
+                            )
+                        },
+                    )*
+                    _ => unreachable!(),
+                }
+            };
+        }
+        run!(
+            (0, 1),
+            (0, 2),
+            (0, 3),
+            (0, 4),
+            (1, 2),
+            (1, 3),
+            (1, 4),
+            (2, 3),
+            (2, 4),
+            (3, 4)
+        );
+    }
+    sums
+}
+
+/// `sums[t] += x[t, c] * w[c]` over `in_channels` input channels, for tile positions
+/// `START .. END` (a compile-time range keeps the accumulators in registers).
+///
+/// # Safety
+/// The CPU supports AVX2 and FMA; `rows.0` points at the input row of position `START`,
+/// later positions `rows.1` floats apart, each with `in_channels` readable values; `weights`
+/// points at `in_channels` rows, `weight_step` apart, of `8 VECS` readable weights.
+#[inline]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn accumulate<W: WeightLane, const VECS: usize, const START: usize, const END: usize>(
+    sums: &mut [[__m256; VECS]; POSITIONS],
+    (rows, input_step): (*const f32, usize),
+    weights: *const W,
+    weight_step: usize,
+    in_channels: usize,
+) {
+    // Plain index loops with constant bounds: LLVM unrolls them and keeps `sums` in
+    // registers (iterator adapters here were left as calls, with the sums in memory).
+    #[allow(clippy::needless_range_loop)]
+    for c in 0..in_channels {
+        let mut lanes = [_mm256_setzero_ps(); VECS];
+        for vec in 0..VECS {
+            // SAFETY: row `c` of the weights holds `8 VECS` readable values.
+            lanes[vec] = unsafe { W::load8(weights.add(c * weight_step + 8 * vec)) };
+        }
+        for position in START..END {
+            // SAFETY: the input row of this position holds `in_channels` values.
+            let x = unsafe { _mm256_broadcast_ss(&*rows.add((position - START) * input_step + c)) };
+            for vec in 0..VECS {
+                sums[position][vec] = _mm256_fmadd_ps(x, lanes[vec], sums[position][vec]);
+            }
+        }
+    }
+}
+
+/// `output += sums * scales` for a tile.
+///
+/// # Safety
+/// The CPU supports AVX2; `output` holds the sequence's rows; `channel + 8 VECS <=
+/// out_channels`; `scales` has `out_channels` values.
+#[inline]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn add_scaled<const VECS: usize>(
+    sequence: &Sequence,
+    sums: &[[__m256; VECS]; POSITIONS],
+    first: usize,
+    channel: usize,
+    scales: Scales<'_>,
+    output: &mut [f32],
+) {
+    let count = (sequence.positions - first).min(POSITIONS);
+    for (position, sum) in sums.iter().enumerate().take(count) {
+        let row = sequence.out_first + (first + position) * sequence.out_step;
+        let out = &mut output[row * sequence.out_channels + channel..][..8 * VECS];
+        for (vec, &value) in sum.iter().enumerate() {
+            // SAFETY: `channel + 8 vec + 8 <= out_channels`, the length of `scales`; `out`
+            // holds `8 VECS` floats.
+            unsafe {
+                let target = out.as_mut_ptr().add(8 * vec);
+                let value = match scales {
+                    Some(scales) => {
+                        let scale = _mm256_loadu_ps(scales.as_ptr().add(channel + 8 * vec));
+                        _mm256_fmadd_ps(value, scale, _mm256_loadu_ps(target))
+                    }
+                    None => _mm256_add_ps(value, _mm256_loadu_ps(target)),
+                };
+                _mm256_storeu_ps(target, value);
+            }
+        }
+    }
+}
+
+/// The last `out_channels - channel < 8` channels, one at a time (the narrow noise head).
+fn narrow_channels<W: WeightLane>(
+    sequence: &Sequence,
+    input: &[f32],
+    weight: &[W],
+    (scales, bias): (Scales<'_>, &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+    channel: usize,
+) {
+    let (in_channels, out_channels) = (sequence.in_channels, sequence.out_channels);
+    for position in 0..sequence.positions {
+        let row = sequence.out_first + position * sequence.out_step;
+        for o in channel..out_channels {
+            let mut sum = 0.0;
+            for index in 0..sequence.taps {
+                let (tap, offset) = sequence.tap(index);
+                let (start, end) = sequence.inside(offset, position, 1);
+                if start >= end {
+                    continue;
+                }
+                let input_row = (position * sequence.stride) as isize + offset;
+                let values = &input[input_row as usize * in_channels..][..in_channels];
+                let taps =
+                    &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
+                for (&x, weights) in values.iter().zip(taps.chunks_exact(out_channels)) {
+                    sum += x * weights[o].to_f32();
+                }
+            }
+            let value = sum * scales.map_or(1.0, |scales| scales[o]) + bias[o];
+            let out = &mut output[row * out_channels + o];
+            match accumulate {
+                Accumulate::Overwrite => *out = value,
+                Accumulate::Add => *out += value,
+            }
+        }
+    }
+}
+
+/// `output[r] = base[r] + (sum_c w[r, c] input[c]) * scales[r]` for a row-major `[rows,
+/// cols]` weight (the FiLM layers: rows of ~800 weights, each read once).
+///
+/// # Safety
+/// The CPU supports AVX2 and FMA.
+///
+/// # Panics
+/// If the lengths disagree (the model code never passes such slices).
+#[target_feature(enable = "avx2,fma")]
+pub unsafe fn matvec<W: WeightLane>(
+    weight: &[W],
+    scales: Scales<'_>,
+    input: &[f32],
+    base: &[f32],
+    output: &mut [f32],
+) {
+    let cols = input.len();
+    assert_eq!(weight.len(), output.len() * cols);
+    assert_eq!(base.len(), output.len());
+    if let Some(scales) = scales {
+        assert_eq!(scales.len(), output.len());
+    }
+    if cols == 0 {
+        output.copy_from_slice(base);
+        return;
+    }
+    let vector_cols = cols - cols % 8;
+    for (r, (out, row)) in output.iter_mut().zip(weight.chunks_exact(cols)).enumerate() {
+        // Four independent sums hide the FMA latency.
+        let mut sums = [_mm256_setzero_ps(); 4];
+        let mut c = 0;
+        while c + 32 <= vector_cols {
+            for (k, sum) in sums.iter_mut().enumerate() {
+                // SAFETY: `c + 8 k + 8 <= cols`, the length of `row` and `input`.
+                unsafe {
+                    let w = W::load8(row.as_ptr().add(c + 8 * k));
+                    let x = _mm256_loadu_ps(input.as_ptr().add(c + 8 * k));
+                    *sum = _mm256_fmadd_ps(w, x, *sum);
+                }
+            }
+            c += 32;
+        }
+        while c < vector_cols {
+            // SAFETY: `c + 8 <= vector_cols <= cols`.
+            unsafe {
+                let w = W::load8(row.as_ptr().add(c));
+                let x = _mm256_loadu_ps(input.as_ptr().add(c));
+                sums[0] = _mm256_fmadd_ps(w, x, sums[0]);
+            }
+            c += 8;
+        }
+        let total = _mm256_add_ps(
+            _mm256_add_ps(sums[0], sums[1]),
+            _mm256_add_ps(sums[2], sums[3]),
+        );
+        let mut sum = horizontal_sum(total);
+        for (&w, &x) in row[vector_cols..].iter().zip(&input[vector_cols..]) {
+            sum += w.to_f32() * x;
+        }
+        *out = base[r] + sum * scales.map_or(1.0, |scales| scales[r]);
+    }
+}
+
+#[inline]
+#[target_feature(enable = "avx2")]
+fn horizontal_sum(v: __m256) -> f32 {
+    let quad = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
+    let pair = _mm_add_ps(quad, _mm_movehl_ps(quad, quad));
+    _mm_cvtss_f32(_mm_add_ss(pair, _mm_shuffle_ps::<1>(pair, pair)))
+}
