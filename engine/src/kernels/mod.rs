@@ -3,6 +3,14 @@
 //! Each heavy kernel family is a method of [`Kernels`], the contract every implementation
 //! meets; [`scalar::Scalar`] is the reference, always compiled, against which any faster
 //! implementation is tested. Light element-wise operations live in [`ops`].
+//!
+//! Adding an architecture (say aarch64 NEON with SDOT) touches no model code: a folder
+//! `kernels/aarch64/` with a type implementing [`Kernels`] (methods it does not speed up can
+//! call [`scalar::Scalar`]), a [`Backend`] variant, a branch in [`select`] behind its own
+//! feature detection, and its name in `backends()` of the kernel tests and in
+//! `SCDP_REQUIRE_BACKENDS`, so the shared test suite runs it against the reference. The int8
+//! weight layout already suits SDOT: 2-D convolution weights are stored in input-channel
+//! quads (`[kh, kw, in/4, out, 4]`, docs/FORMAT.md), the four bytes one `sdot` lane reads.
 
 pub mod ops;
 pub mod scalar;
@@ -21,7 +29,8 @@ pub enum Backend {
     Scalar,
     /// x86-64 AVX2 + FMA.
     Avx2,
-    /// x86-64 AVX-512 (F, BW, VL) with VNNI for the int8 convolutions; AVX2 for the rest.
+    /// x86-64 AVX-512 (F, BW, VL) with VNNI: the int8 and f32 2-D convolutions; AVX2 for
+    /// the rest.
     Avx512,
 }
 
