@@ -1,8 +1,9 @@
 //! AVX2 + FMA kernels. The convolution keeps a 4-pixel x 16-channel tile of outputs in eight
 //! YMM accumulators: per input channel and tap, two weight loads and four broadcasts feed
 //! eight FMAs (the scalar reference reloads and stores its output for every product).
-//! Border pixels use the scalar reference; the U-Net's 1-D convolutions, upsampling and
-//! matrix-vector products use the weight-streaming [`sequence`] kernels.
+//! Border pixels and the few that do not fill a tile are single-pixel FMA chains. The
+//! U-Net's 1-D convolutions, upsampling and matrix-vector products use the weight-streaming
+//! [`sequence`] kernels.
 
 use core::arch::x86_64::{
     __m256, _mm256_add_ps, _mm256_fmadd_ps, _mm256_loadu_ps, _mm256_set1_ps, _mm256_setzero_ps,
@@ -10,8 +11,8 @@ use core::arch::x86_64::{
 };
 
 use super::sequence::{self, Sequence};
-use super::{Run, interior, walk_pixels};
-use crate::kernels::scalar::{Scalar, conv_pixels};
+use super::tap_offsets;
+use crate::kernels::scalar::Scalar;
 use crate::kernels::{Accumulate, ConvShape, Kernels, QuantizedRows};
 
 /// Output pixels per tile (along a row) and output channels per tile.
@@ -47,44 +48,46 @@ fn as_sequence(shape: &ConvShape) -> Option<Sequence> {
     })
 }
 
-/// `N` output pixels x 16 channels from `channel`, all taps inside the input. Each pixel's
-/// sum is one chain of FMAs in tap and input-channel order, whatever `N` is, so a pixel
-/// computed alone equals the same pixel computed in a tile.
+/// Output pixels `out_x .. out_x + count` of row `out_y` (`count <= N`) x 16 channels
+/// from `channel`. Per input channel and tap, two weight loads feed two FMAs per pixel
+/// whose tap is inside the input ([`tap_offsets`]); where all `N` pixels are inside (the
+/// common case) the loop has no per-pixel test.
 ///
 /// # Safety
-/// The CPU supports AVX2 and FMA; the slices have the lengths `shape` implies;
-/// `interior(shape, out_y, out_x, N)` holds; `channel + 16 <= out_channels`.
+/// The CPU supports AVX2 and FMA; the slices have the lengths `shape` implies; the pixels
+/// are in the output; `channel + 16 <= out_channels`.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn interior_tile<const N: usize>(
+unsafe fn tile<const N: usize>(
     shape: &ConvShape,
-    input: &[f32],
-    weight: &[f32],
-    out_y: usize,
-    out_x: usize,
+    (input, weight): (&[f32], &[f32]),
+    (out_y, out_x): (usize, usize),
+    count: usize,
     channel: usize,
 ) -> [[__m256; 2]; N] {
-    let in_channels = shape.in_channels;
-    let out_channels = shape.out_channels;
-    let stride = shape.stride;
+    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
     let mut sums = [[_mm256_setzero_ps(); 2]; N];
     for kernel_y in 0..shape.kernel_height {
-        let in_y = out_y * stride + kernel_y - shape.padding_height;
         for kernel_x in 0..shape.kernel_width {
-            let in_x = out_x * stride + kernel_x - shape.padding_width;
-            let first = (in_y * shape.in_width + in_x) * in_channels;
-            let pixel_step = stride * in_channels;
+            let offsets = tap_offsets::<N>(shape, (out_y, out_x), count, (kernel_y, kernel_x));
             let taps =
                 (kernel_y * shape.kernel_width + kernel_x) * in_channels * out_channels + channel;
+            // The common case, every pixel inside: no per-pixel test in the loop.
+            let inside = offsets.iter().all(Option::is_some);
+            let offsets = offsets.map(|offset| offset.unwrap_or(usize::MAX));
             for input_channel in 0..in_channels {
-                // SAFETY: `interior` puts all four pixels of this tap inside the input, and
-                // the weight row of 16 channels from `channel` is inside the tap's block.
+                // SAFETY: each offset other than usize::MAX is a pixel inside the input
+                // (`tap_offsets`), so `offset + input_channel` is inside it; the weight row
+                // of 16 channels from `channel` is inside the tap's block.
                 unsafe {
                     let row = weight.as_ptr().add(taps + input_channel * out_channels);
                     let low = _mm256_loadu_ps(row);
                     let high = _mm256_loadu_ps(row.add(8));
-                    let values = input.as_ptr().add(first + input_channel);
-                    for (pixel, sum) in sums.iter_mut().enumerate() {
-                        let value = _mm256_set1_ps(*values.add(pixel * pixel_step));
+                    let values = input.as_ptr().add(input_channel);
+                    for (&offset, sum) in offsets.iter().zip(sums.iter_mut()) {
+                        if !inside && offset == usize::MAX {
+                            continue;
+                        }
+                        let value = _mm256_set1_ps(*values.add(offset));
                         sum[0] = _mm256_fmadd_ps(value, low, sum[0]);
                         sum[1] = _mm256_fmadd_ps(value, high, sum[1]);
                     }
@@ -98,11 +101,11 @@ unsafe fn interior_tile<const N: usize>(
 /// Adds the bias (and the existing output with [`Accumulate::Add`]) and stores a tile.
 ///
 /// # Safety
-/// The CPU supports AVX2; `channel + 16 <= out_channels`; the `N` pixels from
-/// `first_pixel` are inside `output`.
+/// The CPU supports AVX2; `channel + 16 <= out_channels`; the pixels from `first_pixel`
+/// are inside `output`.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn store_tile<const N: usize>(
-    sums: &[[__m256; 2]; N],
+unsafe fn store_tile(
+    sums: &[[__m256; 2]],
     bias: &[f32],
     output: &mut [f32],
     out_channels: usize,
@@ -156,41 +159,19 @@ impl Kernels for Avx2 {
             return Scalar.conv(shape, input, weight, bias, output, accumulate);
         }
         let out_width = shape.out_width();
-        walk_pixels(shape, PIXELS, |out_y, out_x, run| {
-            let Run::Interior(pixels) = run else {
-                let columns = out_x..out_x + 1;
-                return conv_pixels(
-                    shape,
-                    (input, weight, bias),
-                    output,
-                    accumulate,
-                    out_y,
-                    columns,
-                );
-            };
-            let first_pixel = out_y * out_width + out_x;
-            for channel in (0..shape.out_channels).step_by(CHANNELS) {
-                // SAFETY: `self` exists only when AVX2 and FMA were detected; the asserts
-                // above fix the slice lengths; `walk_pixels` checked `interior` for these
-                // pixels, and `channel + 16 <= out_channels` as out_channels is a multiple
-                // of 16.
-                unsafe {
-                    if pixels == PIXELS {
+        for out_y in 0..shape.out_height() {
+            for out_x in (0..out_width).step_by(PIXELS) {
+                let count = (out_width - out_x).min(PIXELS);
+                let first_pixel = out_y * out_width + out_x;
+                for channel in (0..shape.out_channels).step_by(CHANNELS) {
+                    // SAFETY: `self` exists only when AVX2 and FMA were detected; the asserts
+                    // above fix the slice lengths; the pixels are in the row, and
+                    // `channel + 16 <= out_channels` as out_channels is a multiple of 16.
+                    unsafe {
                         let sums =
-                            interior_tile::<PIXELS>(shape, input, weight, out_y, out_x, channel);
+                            tile::<PIXELS>(shape, (input, weight), (out_y, out_x), count, channel);
                         store_tile(
-                            &sums,
-                            bias,
-                            output,
-                            shape.out_channels,
-                            first_pixel,
-                            channel,
-                            accumulate,
-                        );
-                    } else {
-                        let sums = interior_tile::<1>(shape, input, weight, out_y, out_x, channel);
-                        store_tile(
-                            &sums,
+                            &sums[..count],
                             bias,
                             output,
                             shape.out_channels,
@@ -201,7 +182,7 @@ impl Kernels for Avx2 {
                     }
                 }
             }
-        });
+        }
     }
 
     fn conv_pixel(
@@ -219,17 +200,14 @@ impl Kernels for Avx2 {
         assert_eq!(output.len(), shape.out_channels);
         assert!(out_y < shape.out_height() && out_x < shape.out_width());
         // The paths `conv` takes for this pixel.
-        if as_sequence(shape).is_some()
-            || !shape.out_channels.is_multiple_of(CHANNELS)
-            || !interior(shape, out_y, out_x, 1)
-        {
+        if as_sequence(shape).is_some() || !shape.out_channels.is_multiple_of(CHANNELS) {
             return Scalar.conv_pixel(shape, input, weight, bias, (out_y, out_x), output);
         }
         for channel in (0..shape.out_channels).step_by(CHANNELS) {
             // SAFETY: as in `conv`; `output` holds the pixel's channels, so the one pixel
             // from index 0 is inside it.
             unsafe {
-                let sums = interior_tile::<1>(shape, input, weight, out_y, out_x, channel);
+                let sums = tile::<1>(shape, (input, weight), (out_y, out_x), 1, channel);
                 store_tile(
                     &sums,
                     bias,

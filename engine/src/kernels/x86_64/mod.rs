@@ -10,53 +10,25 @@ use core::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
 
 use crate::kernels::ConvShape;
 
-/// Whether every kernel tap of output pixels `out_x .. out_x + pixels` of row `out_y` reads
-/// inside the input (no padding involved).
-pub(crate) fn interior(shape: &ConvShape, out_y: usize, out_x: usize, pixels: usize) -> bool {
-    let top = out_y * shape.stride;
-    let left = out_x * shape.stride;
-    let right = (out_x + pixels - 1) * shape.stride + shape.kernel_width;
-    top >= shape.padding_height
-        && top + shape.kernel_height <= shape.in_height + shape.padding_height
-        && left >= shape.padding_width
-        && right <= shape.in_width + shape.padding_width
-}
-
-/// How an f32 convolution covers its output pixels.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Run {
-    /// This many consecutive pixels of the row (a full tile, or 1), all taps inside.
-    Interior(usize),
-    /// One pixel with taps in the padding (the scalar reference computes it).
-    Border,
-}
-
-/// Visits every output pixel of `shape` once, row by row: tiles of `tile` interior pixels
-/// where they fit, single interior pixels, single border pixels. Each interior pixel is
-/// one FMA chain whichever run it is in, so a kernel's single-pixel path can reproduce it.
-pub(crate) fn walk_pixels(
+/// Where each pixel of the tile `out_x .. out_x + count` of row `out_y` (`N` slots, the
+/// last ones unused when `count < N`) reads kernel tap `(kernel_y, kernel_x)`: the input
+/// offset of its first channel, or `None` when the tap lies in the padding or the slot is
+/// unused. The f32 kernels skip those taps exactly as the scalar reference does, so every
+/// output pixel is one FMA chain over its inside taps, in tap and input-channel order,
+/// whichever tile (or single-pixel call) computes it.
+pub(crate) fn tap_offsets<const N: usize>(
     shape: &ConvShape,
-    tile: usize,
-    mut visit: impl FnMut(usize, usize, Run),
-) {
-    let out_width = shape.out_width();
-    for out_y in 0..shape.out_height() {
-        let mut out_x = 0;
-        while out_x < out_width {
-            let run = if out_x + tile <= out_width && interior(shape, out_y, out_x, tile) {
-                Run::Interior(tile)
-            } else if interior(shape, out_y, out_x, 1) {
-                Run::Interior(1)
-            } else {
-                Run::Border
-            };
-            visit(out_y, out_x, run);
-            out_x += match run {
-                Run::Interior(pixels) => pixels,
-                Run::Border => 1,
-            };
-        }
-    }
+    (out_y, out_x): (usize, usize),
+    count: usize,
+    (kernel_y, kernel_x): (usize, usize),
+) -> [Option<usize>; N] {
+    let in_y = (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height);
+    core::array::from_fn(|pixel| {
+        let in_y = in_y.filter(|&y| y < shape.in_height)?;
+        let in_x = ((out_x + pixel) * shape.stride + kernel_x).checked_sub(shape.padding_width)?;
+        (pixel < count && in_x < shape.in_width)
+            .then_some((in_y * shape.in_width + in_x) * shape.in_channels)
+    })
 }
 
 /// Reads XCR0. Only called once CPUID has reported OSXSAVE.
