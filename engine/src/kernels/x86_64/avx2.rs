@@ -1,17 +1,11 @@
-//! AVX2 + FMA kernels. The convolution keeps a 4-pixel x 16-channel tile of outputs in eight
-//! YMM accumulators: per input channel and tap, two weight loads and four broadcasts feed
-//! eight FMAs (the scalar reference reloads and stores its output for every product).
-//! Border pixels and the few that do not fill a tile are single-pixel FMA chains. The
+//! AVX2 + FMA kernels. The 2-D convolution is the shared body of [`f32_tile`] on YMM
+//! vectors, tiles of 4 pixels x 16 channels in eight accumulators (the scalar reference
+//! reloads and stores its output for every product); the int8 one is in `int8.rs`. The
 //! U-Net's 1-D convolutions, upsampling and matrix-vector products use the weight-streaming
 //! [`sequence`] kernels.
 
-use core::arch::x86_64::{
-    __m256, _mm256_add_ps, _mm256_fmadd_ps, _mm256_loadu_ps, _mm256_set1_ps, _mm256_setzero_ps,
-    _mm256_storeu_ps,
-};
-
+use super::f32_tile::{self, Ymm};
 use super::sequence::{self, Sequence};
-use super::tap_offsets;
 use crate::kernels::scalar::Scalar;
 use crate::kernels::{Accumulate, ConvShape, Kernels, QuantizedRows};
 
@@ -48,86 +42,35 @@ fn as_sequence(shape: &ConvShape) -> Option<Sequence> {
     })
 }
 
-/// Output pixels `out_x .. out_x + count` of row `out_y` (`count <= N`) x 16 channels
-/// from `channel`. Per input channel and tap, two weight loads feed two FMAs per pixel
-/// whose tap is inside the input ([`tap_offsets`]); where all `N` pixels are inside (the
-/// common case) the loop has no per-pixel test.
+/// The shared f32 body ([`f32_tile`]) compiled for AVX2 + FMA.
 ///
 /// # Safety
-/// The CPU supports AVX2 and FMA; the slices have the lengths `shape` implies; the pixels
-/// are in the output; `channel + 16 <= out_channels`.
+/// The CPU supports AVX2 and FMA; the slices have the lengths `shape` implies;
+/// `out_channels` is a multiple of 16.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn tile<const N: usize>(
+unsafe fn conv_tiles(
     shape: &ConvShape,
-    (input, weight): (&[f32], &[f32]),
-    (out_y, out_x): (usize, usize),
-    count: usize,
-    channel: usize,
-) -> [[__m256; 2]; N] {
-    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
-    let mut sums = [[_mm256_setzero_ps(); 2]; N];
-    for kernel_y in 0..shape.kernel_height {
-        for kernel_x in 0..shape.kernel_width {
-            let offsets = tap_offsets::<N>(shape, (out_y, out_x), count, (kernel_y, kernel_x));
-            let taps =
-                (kernel_y * shape.kernel_width + kernel_x) * in_channels * out_channels + channel;
-            // The common case, every pixel inside: no per-pixel test in the loop.
-            let inside = offsets.iter().all(Option::is_some);
-            let offsets = offsets.map(|offset| offset.unwrap_or(usize::MAX));
-            for input_channel in 0..in_channels {
-                // SAFETY: each offset other than usize::MAX is a pixel inside the input
-                // (`tap_offsets`), so `offset + input_channel` is inside it; the weight row
-                // of 16 channels from `channel` is inside the tap's block.
-                unsafe {
-                    let row = weight.as_ptr().add(taps + input_channel * out_channels);
-                    let low = _mm256_loadu_ps(row);
-                    let high = _mm256_loadu_ps(row.add(8));
-                    let values = input.as_ptr().add(input_channel);
-                    for (&offset, sum) in offsets.iter().zip(sums.iter_mut()) {
-                        if !inside && offset == usize::MAX {
-                            continue;
-                        }
-                        let value = _mm256_set1_ps(*values.add(offset));
-                        sum[0] = _mm256_fmadd_ps(value, low, sum[0]);
-                        sum[1] = _mm256_fmadd_ps(value, high, sum[1]);
-                    }
-                }
-            }
-        }
-    }
-    sums
-}
-
-/// Adds the bias (and the existing output with [`Accumulate::Add`]) and stores a tile.
-///
-/// # Safety
-/// The CPU supports AVX2; `channel + 16 <= out_channels`; the pixels from `first_pixel`
-/// are inside `output`.
-#[target_feature(enable = "avx2,fma")]
-unsafe fn store_tile(
-    sums: &[[__m256; 2]],
-    bias: &[f32],
+    parameters: (&[f32], &[f32], &[f32]),
     output: &mut [f32],
-    out_channels: usize,
-    first_pixel: usize,
-    channel: usize,
     accumulate: Accumulate,
 ) {
-    let bias = &bias[channel..channel + CHANNELS];
-    for (pixel, sum) in sums.iter().enumerate() {
-        let out = &mut output[(first_pixel + pixel) * out_channels + channel..][..CHANNELS];
-        for (half, &value) in sum.iter().enumerate() {
-            let at = 8 * half;
-            // SAFETY: `out` and `bias` hold 16 floats; each access covers 8 from `at`.
-            unsafe {
-                let mut value = _mm256_add_ps(value, _mm256_loadu_ps(bias.as_ptr().add(at)));
-                if accumulate == Accumulate::Add {
-                    value = _mm256_add_ps(value, _mm256_loadu_ps(out.as_ptr().add(at)));
-                }
-                _mm256_storeu_ps(out.as_mut_ptr().add(at), value);
-            }
-        }
-    }
+    // SAFETY: this function's contract is the body's.
+    unsafe { f32_tile::conv::<Ymm, PIXELS>(shape, parameters, output, accumulate) }
+}
+
+/// [`f32_tile::conv_pixel`] compiled for AVX2 + FMA.
+///
+/// # Safety
+/// As for [`conv_tiles`]; the pixel is in the output and `output` holds its channels.
+#[target_feature(enable = "avx2,fma")]
+unsafe fn conv_one_pixel(
+    shape: &ConvShape,
+    parameters: (&[f32], &[f32], &[f32]),
+    pixel: (usize, usize),
+    output: &mut [f32],
+) {
+    // SAFETY: this function's contract is the body's.
+    unsafe { f32_tile::conv_pixel::<Ymm>(shape, parameters, pixel, output) }
 }
 
 impl Kernels for Avx2 {
@@ -158,31 +101,9 @@ impl Kernels for Avx2 {
         if !shape.out_channels.is_multiple_of(CHANNELS) {
             return Scalar.conv(shape, input, weight, bias, output, accumulate);
         }
-        let out_width = shape.out_width();
-        for out_y in 0..shape.out_height() {
-            for out_x in (0..out_width).step_by(PIXELS) {
-                let count = (out_width - out_x).min(PIXELS);
-                let first_pixel = out_y * out_width + out_x;
-                for channel in (0..shape.out_channels).step_by(CHANNELS) {
-                    // SAFETY: `self` exists only when AVX2 and FMA were detected; the asserts
-                    // above fix the slice lengths; the pixels are in the row, and
-                    // `channel + 16 <= out_channels` as out_channels is a multiple of 16.
-                    unsafe {
-                        let sums =
-                            tile::<PIXELS>(shape, (input, weight), (out_y, out_x), count, channel);
-                        store_tile(
-                            &sums[..count],
-                            bias,
-                            output,
-                            shape.out_channels,
-                            first_pixel,
-                            channel,
-                            accumulate,
-                        );
-                    }
-                }
-            }
-        }
+        // SAFETY: `self` exists only when AVX2 and FMA were detected; the asserts above fix
+        // the slice lengths, and out_channels is a multiple of 16.
+        unsafe { conv_tiles(shape, (input, weight, bias), output, accumulate) }
     }
 
     fn conv_pixel(
@@ -203,22 +124,9 @@ impl Kernels for Avx2 {
         if as_sequence(shape).is_some() || !shape.out_channels.is_multiple_of(CHANNELS) {
             return Scalar.conv_pixel(shape, input, weight, bias, (out_y, out_x), output);
         }
-        for channel in (0..shape.out_channels).step_by(CHANNELS) {
-            // SAFETY: as in `conv`; `output` holds the pixel's channels, so the one pixel
-            // from index 0 is inside it.
-            unsafe {
-                let sums = tile::<1>(shape, (input, weight), (out_y, out_x), 1, channel);
-                store_tile(
-                    &sums,
-                    bias,
-                    output,
-                    shape.out_channels,
-                    0,
-                    channel,
-                    Accumulate::Overwrite,
-                );
-            }
-        }
+        // SAFETY: as in `conv`; the pixel is in the output (asserted) and `output` holds
+        // its channels.
+        unsafe { conv_one_pixel(shape, (input, weight, bias), (out_y, out_x), output) }
     }
 
     fn upsample_conv(

@@ -1,0 +1,255 @@
+//! The f32 2-D convolution both x86-64 backends run: one generic body over a vector width
+//! ([`Lanes`]: YMM for AVX2, ZMM for AVX-512), instantiated inside each backend's thin
+//! `#[target_feature]` wrapper, where `#[inline(always)]` lets the intrinsics compile with
+//! that backend's instructions.
+//!
+//! A tile is `N` consecutive output pixels of a row x two vectors of output channels. Per
+//! input channel and tap, two weight loads feed two FMAs per pixel whose tap is inside the
+//! input ([`tap_offsets`]); padding taps are skipped per pixel as the scalar reference skips
+//! them. Every pixel is therefore one FMA chain over its inside taps, in tap and
+//! input-channel order from zero, then the bias is added, whichever tile computes it: the
+//! single-pixel path ([`conv_pixel`]) is the one-pixel tile and gives the same bits.
+
+use core::arch::x86_64::{
+    __m256, __m512, _mm256_add_ps, _mm256_fmadd_ps, _mm256_loadu_ps, _mm256_set1_ps,
+    _mm256_setzero_ps, _mm256_storeu_ps, _mm512_add_ps, _mm512_fmadd_ps, _mm512_loadu_ps,
+    _mm512_set1_ps, _mm512_setzero_ps, _mm512_storeu_ps,
+};
+
+use super::tap_offsets;
+use crate::kernels::{Accumulate, ConvShape};
+
+/// A vector of f32 lanes and the operations the tile needs.
+///
+/// # Safety
+/// Every method requires the CPU to support the vector's instructions (AVX2 + FMA for
+/// [`Ymm`], AVX-512F for [`Zmm`]); pointers must cover `WIDTH` floats.
+pub(crate) unsafe trait Lanes {
+    type Vector: Copy;
+    const WIDTH: usize;
+    unsafe fn zero() -> Self::Vector;
+    unsafe fn load(from: *const f32) -> Self::Vector;
+    unsafe fn store(to: *mut f32, value: Self::Vector);
+    unsafe fn splat(value: f32) -> Self::Vector;
+    /// `a * b + c`, one rounding.
+    unsafe fn fma(a: Self::Vector, b: Self::Vector, c: Self::Vector) -> Self::Vector;
+    unsafe fn add(a: Self::Vector, b: Self::Vector) -> Self::Vector;
+}
+
+/// Eight lanes (AVX2 + FMA).
+pub(crate) struct Ymm;
+
+/// Sixteen lanes (AVX-512F).
+pub(crate) struct Zmm;
+
+// SAFETY: each method is the one intrinsic of its name; the trait's contract passes the
+// CPU requirement on to the caller.
+unsafe impl Lanes for Ymm {
+    type Vector = __m256;
+    const WIDTH: usize = 8;
+    #[inline(always)]
+    unsafe fn zero() -> __m256 {
+        // SAFETY: the caller runs on AVX2 (trait contract).
+        unsafe { _mm256_setzero_ps() }
+    }
+    #[inline(always)]
+    unsafe fn load(from: *const f32) -> __m256 {
+        // SAFETY: the caller runs on AVX2 and `from` covers 8 floats (trait contract).
+        unsafe { _mm256_loadu_ps(from) }
+    }
+    #[inline(always)]
+    unsafe fn store(to: *mut f32, value: __m256) {
+        // SAFETY: the caller runs on AVX2 and `to` covers 8 floats (trait contract).
+        unsafe { _mm256_storeu_ps(to, value) }
+    }
+    #[inline(always)]
+    unsafe fn splat(value: f32) -> __m256 {
+        // SAFETY: the caller runs on AVX2 (trait contract).
+        unsafe { _mm256_set1_ps(value) }
+    }
+    #[inline(always)]
+    unsafe fn fma(a: __m256, b: __m256, c: __m256) -> __m256 {
+        // SAFETY: the caller runs on AVX2 + FMA (trait contract).
+        unsafe { _mm256_fmadd_ps(a, b, c) }
+    }
+    #[inline(always)]
+    unsafe fn add(a: __m256, b: __m256) -> __m256 {
+        // SAFETY: the caller runs on AVX2 (trait contract).
+        unsafe { _mm256_add_ps(a, b) }
+    }
+}
+
+// SAFETY: as for `Ymm`, with AVX-512F.
+unsafe impl Lanes for Zmm {
+    type Vector = __m512;
+    const WIDTH: usize = 16;
+    #[inline(always)]
+    unsafe fn zero() -> __m512 {
+        // SAFETY: the caller runs on AVX-512F (trait contract).
+        unsafe { _mm512_setzero_ps() }
+    }
+    #[inline(always)]
+    unsafe fn load(from: *const f32) -> __m512 {
+        // SAFETY: the caller runs on AVX-512F and `from` covers 16 floats (trait contract).
+        unsafe { _mm512_loadu_ps(from) }
+    }
+    #[inline(always)]
+    unsafe fn store(to: *mut f32, value: __m512) {
+        // SAFETY: the caller runs on AVX-512F and `to` covers 16 floats (trait contract).
+        unsafe { _mm512_storeu_ps(to, value) }
+    }
+    #[inline(always)]
+    unsafe fn splat(value: f32) -> __m512 {
+        // SAFETY: the caller runs on AVX-512F (trait contract).
+        unsafe { _mm512_set1_ps(value) }
+    }
+    #[inline(always)]
+    unsafe fn fma(a: __m512, b: __m512, c: __m512) -> __m512 {
+        // SAFETY: the caller runs on AVX-512F (trait contract).
+        unsafe { _mm512_fmadd_ps(a, b, c) }
+    }
+    #[inline(always)]
+    unsafe fn add(a: __m512, b: __m512) -> __m512 {
+        // SAFETY: the caller runs on AVX-512F (trait contract).
+        unsafe { _mm512_add_ps(a, b) }
+    }
+}
+
+/// Output pixels `out_x .. out_x + count` of row `out_y` (`count <= N`) x `2 WIDTH`
+/// channels from `channel`; where all `N` pixels are inside the input (the common case)
+/// the loop has no per-pixel test.
+///
+/// # Safety
+/// The CPU supports `L`; the slices have the lengths `shape` implies; the pixels are in the
+/// output; `channel + 2 WIDTH <= out_channels`.
+#[inline(always)]
+unsafe fn tile<L: Lanes, const N: usize>(
+    shape: &ConvShape,
+    (input, weight): (&[f32], &[f32]),
+    (out_y, out_x): (usize, usize),
+    count: usize,
+    channel: usize,
+) -> [[L::Vector; 2]; N] {
+    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+    // SAFETY: the caller runs on `L`'s CPU.
+    let mut sums = [[unsafe { L::zero() }; 2]; N];
+    for kernel_y in 0..shape.kernel_height {
+        for kernel_x in 0..shape.kernel_width {
+            let offsets = tap_offsets::<N>(shape, (out_y, out_x), count, (kernel_y, kernel_x));
+            let taps =
+                (kernel_y * shape.kernel_width + kernel_x) * in_channels * out_channels + channel;
+            let inside = offsets.iter().all(Option::is_some);
+            let offsets = offsets.map(|offset| offset.unwrap_or(usize::MAX));
+            for input_channel in 0..in_channels {
+                // SAFETY: each offset other than usize::MAX is a pixel inside the input
+                // (`tap_offsets`), so `offset + input_channel` is inside it; the weight row
+                // of 2 WIDTH channels from `channel` is inside the tap's block.
+                unsafe {
+                    let row = weight.as_ptr().add(taps + input_channel * out_channels);
+                    let low = L::load(row);
+                    let high = L::load(row.add(L::WIDTH));
+                    let values = input.as_ptr().add(input_channel);
+                    for (&offset, sum) in offsets.iter().zip(sums.iter_mut()) {
+                        if !inside && offset == usize::MAX {
+                            continue;
+                        }
+                        let value = L::splat(*values.add(offset));
+                        sum[0] = L::fma(value, low, sum[0]);
+                        sum[1] = L::fma(value, high, sum[1]);
+                    }
+                }
+            }
+        }
+    }
+    sums
+}
+
+/// Adds the bias (and the existing output with [`Accumulate::Add`]) and stores the pixels
+/// of a tile from `first_pixel`.
+///
+/// # Safety
+/// The CPU supports `L`; `channel + 2 WIDTH <= out_channels`; the pixels are inside
+/// `output`.
+#[inline(always)]
+unsafe fn store_tile<L: Lanes>(
+    sums: &[[L::Vector; 2]],
+    (bias, output): (&[f32], &mut [f32]),
+    out_channels: usize,
+    (first_pixel, channel): (usize, usize),
+    accumulate: Accumulate,
+) {
+    let bias = &bias[channel..channel + 2 * L::WIDTH];
+    for (pixel, sum) in sums.iter().enumerate() {
+        let out = &mut output[(first_pixel + pixel) * out_channels + channel..][..2 * L::WIDTH];
+        for (half, &value) in sum.iter().enumerate() {
+            let at = L::WIDTH * half;
+            // SAFETY: `out` and `bias` hold 2 WIDTH floats; each access covers WIDTH from
+            // `at`; the caller runs on `L`'s CPU.
+            unsafe {
+                let mut value = L::add(value, L::load(bias.as_ptr().add(at)));
+                if accumulate == Accumulate::Add {
+                    value = L::add(value, L::load(out.as_ptr().add(at)));
+                }
+                L::store(out.as_mut_ptr().add(at), value);
+            }
+        }
+    }
+}
+
+/// The whole convolution, tiles of `N` pixels along each row.
+///
+/// # Safety
+/// The CPU supports `L`; the slices have the lengths `shape` implies; `out_channels` is a
+/// multiple of `2 WIDTH`.
+#[inline(always)]
+pub(crate) unsafe fn conv<L: Lanes, const N: usize>(
+    shape: &ConvShape,
+    (input, weight, bias): (&[f32], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    let out_width = shape.out_width();
+    for out_y in 0..shape.out_height() {
+        for out_x in (0..out_width).step_by(N) {
+            let count = (out_width - out_x).min(N);
+            let first_pixel = out_y * out_width + out_x;
+            for channel in (0..shape.out_channels).step_by(2 * L::WIDTH) {
+                // SAFETY: the caller vouches for the CPU and the lengths; the pixels are in
+                // the row and the channel block inside `out_channels`.
+                unsafe {
+                    let sums = tile::<L, N>(shape, (input, weight), (out_y, out_x), count, channel);
+                    let at = (first_pixel, channel);
+                    let out = (bias, &mut *output);
+                    store_tile::<L>(&sums[..count], out, shape.out_channels, at, accumulate);
+                }
+            }
+        }
+    }
+}
+
+/// Output pixel `pixel` of [`conv`] (overwriting), into `output` (`out_channels` values).
+///
+/// # Safety
+/// As for [`conv`]; the pixel is in the output.
+#[inline(always)]
+pub(crate) unsafe fn conv_pixel<L: Lanes>(
+    shape: &ConvShape,
+    (input, weight, bias): (&[f32], &[f32], &[f32]),
+    pixel: (usize, usize),
+    output: &mut [f32],
+) {
+    for channel in (0..shape.out_channels).step_by(2 * L::WIDTH) {
+        // SAFETY: as in `conv`; `output` is the pixel's channels, so pixel 0 is inside it.
+        unsafe {
+            let sums = tile::<L, 1>(shape, (input, weight), pixel, 1, channel);
+            let out = (bias, &mut *output);
+            store_tile::<L>(
+                &sums,
+                out,
+                shape.out_channels,
+                (0, channel),
+                Accumulate::Overwrite,
+            );
+        }
+    }
+}
