@@ -74,6 +74,33 @@ pub(crate) fn conv_pixel(
     }
 }
 
+/// The slice lengths [`Kernels::conv`] and [`Kernels::conv_weight_int8`] promise (weights
+/// of either type).
+pub(crate) fn assert_conv_lengths<Weight>(
+    shape: &ConvShape,
+    (input, weight, bias): (&[f32], &[Weight], &[f32]),
+    output_len: usize,
+) {
+    assert_eq!(input.len(), shape.input_len());
+    assert_eq!(weight.len(), shape.weight_len());
+    assert_eq!(bias.len(), shape.out_channels);
+    assert_eq!(output_len, shape.output_len());
+}
+
+/// The slice lengths [`Kernels::conv_pixel`] promises, and the pixel inside the output.
+pub(crate) fn assert_conv_pixel_lengths(
+    shape: &ConvShape,
+    (input, weight, bias): (&[f32], &[f32], &[f32]),
+    (out_y, out_x): (usize, usize),
+    output_len: usize,
+) {
+    assert_eq!(input.len(), shape.input_len());
+    assert_eq!(weight.len(), shape.weight_len());
+    assert_eq!(bias.len(), shape.out_channels);
+    assert_eq!(output_len, shape.out_channels);
+    assert!(out_y < shape.out_height() && out_x < shape.out_width());
+}
+
 /// The slice lengths [`Kernels::conv_int8`] promises.
 pub(crate) fn assert_int8_lengths(
     shape: &ConvShape,
@@ -206,10 +233,7 @@ impl Kernels for Scalar {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        assert_eq!(input.len(), shape.input_len());
-        assert_eq!(weight.len(), shape.weight_len());
-        assert_eq!(bias.len(), shape.out_channels);
-        assert_eq!(output.len(), shape.output_len());
+        assert_conv_lengths(shape, (input, weight, bias), output.len());
         for out_y in 0..shape.out_height() {
             conv_pixels(
                 shape,
@@ -307,11 +331,8 @@ impl Kernels for Scalar {
         let out_width = shape.out_width();
         let in_channels = shape.in_channels;
         let out_channels = shape.out_channels;
-        assert_eq!(input.len(), shape.input_len());
-        assert_eq!(weight.len(), shape.weight_len());
+        assert_conv_lengths(shape, (input, weight, bias), output.len());
         assert_eq!(weight_scales.len(), out_channels);
-        assert_eq!(bias.len(), out_channels);
-        assert_eq!(output.len(), shape.output_len());
         for (position, out) in output.chunks_exact_mut(out_channels).enumerate() {
             let out_y = position / out_width;
             let out_x = position % out_width;

@@ -6,7 +6,7 @@
 
 use super::f32_tile::{self, Ymm};
 use super::sequence::{self, Sequence};
-use crate::kernels::scalar::Scalar;
+use crate::kernels::scalar::{Scalar, assert_conv_lengths, assert_conv_pixel_lengths};
 use crate::kernels::{Accumulate, ConvShape, Kernels, QuantizedRows};
 
 /// Output pixels per tile (along a row) and output channels per tile.
@@ -87,10 +87,7 @@ impl Kernels for Avx2 {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        assert_eq!(input.len(), shape.input_len());
-        assert_eq!(weight.len(), shape.weight_len());
-        assert_eq!(bias.len(), shape.out_channels);
-        assert_eq!(output.len(), shape.output_len());
+        assert_conv_lengths(shape, (input, weight, bias), output.len());
         if let Some(sequence) = as_sequence(shape) {
             // SAFETY: `self` exists only when AVX2 and FMA were detected.
             return unsafe {
@@ -115,11 +112,7 @@ impl Kernels for Avx2 {
         (out_y, out_x): (usize, usize),
         output: &mut [f32],
     ) {
-        assert_eq!(input.len(), shape.input_len());
-        assert_eq!(weight.len(), shape.weight_len());
-        assert_eq!(bias.len(), shape.out_channels);
-        assert_eq!(output.len(), shape.out_channels);
-        assert!(out_y < shape.out_height() && out_x < shape.out_width());
+        assert_conv_pixel_lengths(shape, (input, weight, bias), (out_y, out_x), output.len());
         // The paths `conv` takes for this pixel.
         if as_sequence(shape).is_some() || !shape.out_channels.is_multiple_of(CHANNELS) {
             return Scalar.conv_pixel(shape, input, weight, bias, (out_y, out_x), output);
@@ -208,9 +201,8 @@ impl Kernels for Avx2 {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        assert_eq!(input.len(), shape.input_len());
-        assert_eq!(weight.len(), shape.weight_len());
-        assert_eq!(output.len(), shape.output_len());
+        assert_conv_lengths(shape, (input, weight, bias), output.len());
+        assert_eq!(weight_scales.len(), shape.out_channels);
         match as_sequence(shape) {
             // SAFETY: `self` exists only when AVX2 and FMA were detected.
             Some(sequence) => unsafe {

@@ -14,7 +14,9 @@ use core::arch::x86_64::{
 use super::avx2::Avx2;
 use super::avx512_f32;
 use super::int8::{PIXELS, PixelTile, for_each_tile, tiles_apply};
-use crate::kernels::scalar::{Scalar, assert_int8_lengths};
+use crate::kernels::scalar::{
+    Scalar, assert_conv_lengths, assert_conv_pixel_lengths, assert_int8_lengths,
+};
 use crate::kernels::{Accumulate, ConvShape, Kernels, QUAD, QuantizedRows, int8_quad_index};
 
 /// Channels of one ZMM vector (16 i32 or f32 lanes; 64 weight bytes, one quad each).
@@ -163,10 +165,7 @@ impl Kernels for Avx512 {
                 .avx2()
                 .conv(shape, input, weight, bias, output, accumulate);
         }
-        assert_eq!(input.len(), shape.input_len());
-        assert_eq!(weight.len(), shape.weight_len());
-        assert_eq!(bias.len(), shape.out_channels);
-        assert_eq!(output.len(), shape.output_len());
+        assert_conv_lengths(shape, (input, weight, bias), output.len());
         // SAFETY: `self` exists only when AVX-512F was detected; `covers` holds and the
         // asserts fix the lengths.
         unsafe { avx512_f32::conv(shape, (input, weight, bias), output, accumulate) }
@@ -186,11 +185,7 @@ impl Kernels for Avx512 {
                 .avx2()
                 .conv_pixel(shape, input, weight, bias, pixel, output);
         }
-        assert_eq!(input.len(), shape.input_len());
-        assert_eq!(weight.len(), shape.weight_len());
-        assert_eq!(bias.len(), shape.out_channels);
-        assert_eq!(output.len(), shape.out_channels);
-        assert!(pixel.0 < shape.out_height() && pixel.1 < shape.out_width());
+        assert_conv_pixel_lengths(shape, (input, weight, bias), pixel, output.len());
         // SAFETY: as in `conv`, and the pixel is inside the output.
         unsafe { avx512_f32::conv_pixel(shape, (input, weight, bias), pixel, output) }
     }
