@@ -1,0 +1,121 @@
+//! The int8 trunk convolution alone, per layer shape of the panda trunk (320x240 frames), on
+//! every int8 backend this CPU runs: `cargo bench -p scdp-benches --bench kernels`. Criterion
+//! reports the throughput in MACs a second (elements = MACs, taps on the padding included as
+//! in `--bin macs`), to set against the peak rates of `--bench peak`.
+
+use std::hint::black_box;
+use std::time::Duration;
+
+use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use scdp_engine::Backend;
+use scdp_engine::kernels::{Accumulate, ConvShape, QuantizedRows, pack_int8_quads, select};
+
+/// `(name, shape)` of the distinct int8 convolutions of one panda frame.
+fn panda_trunk_layers() -> [(&'static str, ConvShape); 8] {
+    [
+        (
+            "layer1 3x3 64",
+            ConvShape::square((60, 80, 64), 64, 3, 1, 1),
+        ),
+        (
+            "layer2 3x3/2 64-128",
+            ConvShape::square((60, 80, 64), 128, 3, 2, 1),
+        ),
+        (
+            "layer2 3x3 128",
+            ConvShape::square((30, 40, 128), 128, 3, 1, 1),
+        ),
+        (
+            "layer3 3x3 256",
+            ConvShape::square((15, 20, 256), 256, 3, 1, 1),
+        ),
+        (
+            "layer4 3x3 512",
+            ConvShape::square((8, 10, 512), 512, 3, 1, 1),
+        ),
+        (
+            "layer4 3x3/2 256-512",
+            ConvShape::square((15, 20, 256), 512, 3, 2, 1),
+        ),
+        (
+            "layer4 1x1/2 256-512",
+            ConvShape::square((15, 20, 256), 512, 1, 2, 0),
+        ),
+        (
+            "projection 3x3 512-256",
+            ConvShape::square((8, 10, 512), 256, 3, 1, 1),
+        ),
+    ]
+}
+
+/// A small deterministic generator: the values only need to be in range.
+struct Lcg(u64);
+
+impl Lcg {
+    fn next(&mut self) -> u32 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 33) as u32
+    }
+}
+
+fn benches(c: &mut Criterion) {
+    let mut rng = Lcg(7);
+    for (name, shape) in panda_trunk_layers() {
+        let values: Vec<i8> = (0..shape.input_len())
+            .map(|_| (rng.next() % 128) as i8)
+            .collect();
+        let scales: Vec<f32> = (0..shape.in_height * shape.in_width)
+            .map(|_| 0.01 + (rng.next() % 100) as f32 * 1e-4)
+            .collect();
+        let weight: Vec<i8> = (0..shape.weight_len())
+            .map(|_| ((rng.next() % 255) as i32 - 127) as i8)
+            .collect();
+        let mut packed = vec![0i8; shape.int8_weight_len()];
+        pack_int8_quads(&weight, shape.in_channels, shape.out_channels, &mut packed);
+        let weight_scales = vec![1e-3f32; shape.out_channels];
+        let bias = vec![0.5f32; shape.out_channels];
+        let mut output = vec![0.0f32; shape.output_len()];
+        let input = QuantizedRows {
+            values: &values,
+            scales: &scales,
+            nonnegative: true,
+        };
+        let macs = (shape.out_height()
+            * shape.out_width()
+            * shape.kernel_height
+            * shape.kernel_width
+            * shape.in_channels
+            * shape.out_channels) as u64;
+        let mut group = c.benchmark_group(format!("conv_int8/{name}"));
+        group
+            .sample_size(20)
+            .warm_up_time(Duration::from_millis(500))
+            .measurement_time(Duration::from_secs(2))
+            .throughput(Throughput::Elements(macs));
+        for backend in [Backend::Avx2, Backend::Avx512] {
+            let Some(kernels) = select(backend) else {
+                continue;
+            };
+            group.bench_function(kernels.name(), |b| {
+                b.iter(|| {
+                    kernels.conv_int8(
+                        &shape,
+                        black_box(&input),
+                        &packed,
+                        &weight_scales,
+                        &bias,
+                        &mut output,
+                        Accumulate::Overwrite,
+                    )
+                })
+            });
+        }
+        group.finish();
+    }
+}
+
+criterion_group!(kernels, benches);
+criterion_main!(kernels);
