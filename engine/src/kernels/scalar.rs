@@ -105,17 +105,36 @@ pub(crate) fn assert_conv_pixel_lengths(
 pub(crate) fn assert_int8_lengths(
     shape: &ConvShape,
     input: &QuantizedRows<'_>,
-    weight: &[i8],
-    weight_scales: &[f32],
-    bias: &[f32],
-    output: &[f32],
+    parameters: (&[i8], &[f32], &[f32]),
+    output_len: usize,
+) {
+    assert_int8_inputs(shape, input, parameters);
+    assert_eq!(output_len, shape.output_len());
+}
+
+/// The slice lengths [`Kernels::conv_int8_pixel`] promises, and the pixel inside the output.
+pub(crate) fn assert_int8_pixel_lengths(
+    shape: &ConvShape,
+    input: &QuantizedRows<'_>,
+    parameters: (&[i8], &[f32], &[f32]),
+    (out_y, out_x): (usize, usize),
+    output_len: usize,
+) {
+    assert_int8_inputs(shape, input, parameters);
+    assert_eq!(output_len, shape.out_channels);
+    assert!(out_y < shape.out_height() && out_x < shape.out_width());
+}
+
+fn assert_int8_inputs(
+    shape: &ConvShape,
+    input: &QuantizedRows<'_>,
+    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
 ) {
     assert_eq!(input.values.len(), shape.input_len());
     assert_eq!(input.scales.len(), shape.in_height * shape.in_width);
     assert_eq!(weight.len(), shape.int8_weight_len());
     assert_eq!(weight_scales.len(), shape.out_channels);
     assert_eq!(bias.len(), shape.out_channels);
-    assert_eq!(output.len(), shape.output_len());
 }
 
 /// The int8 convolution of output `positions` (row-major over the output map), output
@@ -306,7 +325,7 @@ impl Kernels for Scalar {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        assert_int8_lengths(shape, input, weight, weight_scales, bias, output);
+        assert_int8_lengths(shape, input, (weight, weight_scales, bias), output.len());
         conv_int8_pixels(
             shape,
             input,

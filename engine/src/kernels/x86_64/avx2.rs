@@ -1,10 +1,11 @@
 //! AVX2 + FMA kernels. The 2-D convolution is the shared body of [`f32_tile`] on YMM
 //! vectors, tiles of 4 pixels x 16 channels in eight accumulators (the scalar reference
-//! reloads and stores its output for every product); the int8 one is in `int8.rs`. The
+//! reloads and stores its output for every product); the int8 one is the shared body of [`int8`] on YMM vectors. The
 //! U-Net's 1-D convolutions, upsampling and matrix-vector products use the weight-streaming
 //! [`sequence`] kernels.
 
 use super::f32_tile::{self, Ymm};
+use super::int8;
 use super::sequence::{self, Sequence};
 use crate::kernels::scalar::{Scalar, assert_conv_lengths, assert_conv_pixel_lengths};
 use crate::kernels::{Accumulate, ConvShape, Kernels, QuantizedRows};
@@ -159,34 +160,40 @@ impl Kernels for Avx2 {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        crate::kernels::scalar::assert_int8_lengths(
-            shape,
-            input,
-            weight,
-            weight_scales,
-            bias,
-            output,
-        );
-        if !super::int8::tiles_apply(shape, input) {
-            return Scalar.conv_int8(
-                shape,
-                input,
-                weight,
-                weight_scales,
-                bias,
-                output,
-                accumulate,
-            );
-        }
-        // SAFETY: `self` exists only when AVX2 and FMA were detected; the lengths were
-        // asserted and `tiles_apply` checked just above.
+        let parameters = (weight, weight_scales, bias);
+        // SAFETY: `self` exists only when CPUID reported what the kernel needs.
         unsafe {
-            super::int8::conv_int8_avx2(
+            int8::checked_conv(
+                int8::conv_avx2,
                 shape,
                 input,
-                (weight, weight_scales, bias),
+                parameters,
                 output,
                 accumulate,
+            )
+        }
+    }
+
+    fn conv_int8_pixel(
+        &self,
+        shape: &ConvShape,
+        input: &QuantizedRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        pixel: (usize, usize),
+        output: &mut [f32],
+    ) {
+        let parameters = (weight, weight_scales, bias);
+        // SAFETY: `self` exists only when CPUID reported what the kernel needs.
+        unsafe {
+            int8::checked_conv_pixel(
+                int8::conv_pixel_avx2,
+                shape,
+                input,
+                parameters,
+                pixel,
+                output,
             )
         }
     }

@@ -1,41 +1,229 @@
-//! The int8 convolution of the SIMD backends ([`Kernels::conv_int8`](crate::kernels::Kernels)):
-//! what they share, and the AVX2 integer tile.
+//! The int8 convolution ([`Kernels::conv_int8`](crate::kernels::Kernels) and its
+//! single-pixel form) both x86-64 backends run: one generic body over an integer dot
+//! product ([`Int8Lanes`]: AVX2 `vpmaddubsw` on YMM, AVX-512 VNNI `vpdpbusd` on ZMM),
+//! instantiated inside each backend's thin `#[target_feature]` wrapper, as
+//! [`super::f32_tile`] is for f32.
 //!
-//! A tile is [`PIXELS`] consecutive output positions (row-major over the output map, so a
-//! tile may wrap onto the next row, and maps of one or two pixels still use it) times a block
-//! of output channels. Per kernel tap, the tile's exact i32 sums are accumulated in registers
+//! A tile is `P` consecutive output positions (row-major over the output map, so a tile may
+//! wrap onto the next row, and maps of one or two pixels still use it) times `V` vectors of
+//! output channels. Per kernel tap, the tile's exact i32 sums are accumulated in registers
 //! over all input-channel quads, then converted and added to f32 totals with each pixel's
 //! row scale, in kernel order as the contract says. A pixel whose tap falls in the padding
 //! computes a sum of some other row that is thrown away: it is skipped exactly where the
-//! reference skips it, so border pixels need no separate path.
+//! reference skips it, so border pixels need no separate path, and every output value is
+//! the same whichever tile (or the single-pixel path) computes it.
+//!
+//! Channel blocks are the outer loop and pixel tiles the inner one, so a block's weights
+//! (up to 295 KB, ResNet layer4 at 64 channels) stay in the L2 cache while every pixel
+//! reads them; the other order streamed the whole kernel from L3 once per pixel tile.
 //!
 //! The unsigned-by-signed byte products need activations in 0..=127, which every trunk input
 //! is (a ReLU output); [`QuantizedRows::nonnegative`] says so, and any other input goes to the
 //! scalar reference.
 
 use core::arch::x86_64::{
-    __m256, __m256i, _mm256_add_epi32, _mm256_add_ps, _mm256_cvtepi32_ps, _mm256_loadu_ps,
-    _mm256_loadu_si256, _mm256_madd_epi16, _mm256_maddubs_epi16, _mm256_mul_ps, _mm256_set1_epi16,
-    _mm256_set1_epi32, _mm256_set1_ps, _mm256_setzero_ps, _mm256_setzero_si256, _mm256_storeu_ps,
+    __m256, __m256i, __m512, __m512i, _mm256_add_epi32, _mm256_add_ps, _mm256_cvtepi32_ps,
+    _mm256_loadu_ps, _mm256_loadu_si256, _mm256_madd_epi16, _mm256_maddubs_epi16, _mm256_mul_ps,
+    _mm256_set1_epi16, _mm256_set1_epi32, _mm256_set1_ps, _mm256_setzero_ps, _mm256_setzero_si256,
+    _mm256_storeu_ps, _mm512_add_ps, _mm512_cvtepi32_ps, _mm512_dpbusd_epi32, _mm512_loadu_ps,
+    _mm512_loadu_si512, _mm512_mul_ps, _mm512_set1_epi32, _mm512_set1_ps, _mm512_setzero_ps,
+    _mm512_setzero_si512, _mm512_storeu_ps,
 };
 
-use crate::kernels::scalar::conv_int8_pixels;
+use crate::kernels::scalar::{
+    assert_int8_lengths, assert_int8_pixel_lengths, conv_int8_pixel, conv_int8_pixels,
+};
 use crate::kernels::{Accumulate, ConvShape, QUAD, QuantizedRows, int8_quad_index};
 
-/// Output positions per tile.
-pub(crate) const PIXELS: usize = 4;
-
-/// The pixels of one tile: the first output position and how many there are (the last tile
-/// of a map may be short).
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct PixelTile {
-    pub first: usize,
-    pub count: usize,
-    /// Input coordinates of kernel tap (0, 0) per pixel, negative inside the padding.
-    origins: [(isize, isize); PIXELS],
+/// An integer dot product over input-channel quads, `WIDTH` output channels a vector, and
+/// the f32 arithmetic around it.
+///
+/// # Safety
+/// Every method requires the CPU to support the vector's instructions (AVX2 for
+/// [`PairSumsYmm`], AVX-512 F/BW/VNNI for [`VnniZmm`]); pointers must cover what each
+/// method reads or writes.
+pub(crate) unsafe trait Int8Lanes {
+    /// `WIDTH` i32 lanes: sums, and the bytes of `WIDTH` weight quads or a broadcast quad.
+    type Integers: Copy;
+    /// `WIDTH` f32 lanes.
+    type Floats: Copy;
+    const WIDTH: usize;
+    unsafe fn zero_integers() -> Self::Integers;
+    unsafe fn zero_floats() -> Self::Floats;
+    /// The quads of `WIDTH` output channels (`4 WIDTH` bytes).
+    unsafe fn load_weights(from: *const i8) -> Self::Integers;
+    /// Four activations, repeated in every lane.
+    unsafe fn broadcast_quad(from: *const i8) -> Self::Integers;
+    /// `sum + activations . weights` per lane: four u8 x i8 products, exact for
+    /// activations in 0..=127.
+    unsafe fn dot_quads(
+        sum: Self::Integers,
+        activations: Self::Integers,
+        weights: Self::Integers,
+    ) -> Self::Integers;
+    /// `total + (sum as f32) * scale`, a product then a sum (two roundings).
+    unsafe fn add_scaled(total: Self::Floats, sum: Self::Integers, scale: f32) -> Self::Floats;
+    unsafe fn load(from: *const f32) -> Self::Floats;
+    unsafe fn store(to: *mut f32, value: Self::Floats);
+    unsafe fn mul(a: Self::Floats, b: Self::Floats) -> Self::Floats;
+    unsafe fn add(a: Self::Floats, b: Self::Floats) -> Self::Floats;
 }
 
-impl PixelTile {
+/// AVX2: eight channels a YMM vector. `vpmaddubsw` multiplies the quad's four activations
+/// (u8) by the four weights (i8) and adds adjacent pairs into i16 lanes, `vpmaddwd` by ones
+/// adds the two pairs into an i32 lane, `vpaddd` accumulates. `vpmaddubsw` saturates its
+/// i16 pair sums; with activations in 0..=127 and weights in -127..=127 (the tool's range)
+/// a pair sum lies within ±2 x 127 x 127 = ±32258, and even a weight of -128 (which no tool
+/// writes, but a file may hold) gives at most 2 x 127 x 128 = 32512: inside i16's
+/// -32768..=32767, so nothing saturates and the sums are exact. (An activation of -1 as i8
+/// reads as 255 as u8 and could reach 2 x 255 x 127 = 64770: why negative rows never come
+/// here.) The i32 sum of a tap cannot overflow either: 127 x 127 x in_channels < 2^31 up to
+/// 133,000 input channels.
+pub(crate) struct PairSumsYmm;
+
+/// AVX-512 VNNI: sixteen channels a ZMM vector. `vpdpbusd` multiplies four u8 activations
+/// by four i8 weights and adds them into an i32 lane in one instruction, without
+/// intermediate saturation (exact for any activation in 0..=255, here 0..=127).
+pub(crate) struct VnniZmm;
+
+// SAFETY: each method is the intrinsic sequence its documentation names; the trait's
+// contract passes the CPU and pointer requirements on to the caller.
+unsafe impl Int8Lanes for PairSumsYmm {
+    type Integers = __m256i;
+    type Floats = __m256;
+    const WIDTH: usize = 8;
+    #[inline(always)]
+    unsafe fn zero_integers() -> __m256i {
+        // SAFETY: the caller runs on AVX2 (trait contract).
+        unsafe { _mm256_setzero_si256() }
+    }
+    #[inline(always)]
+    unsafe fn zero_floats() -> __m256 {
+        // SAFETY: the caller runs on AVX2 (trait contract).
+        unsafe { _mm256_setzero_ps() }
+    }
+    #[inline(always)]
+    unsafe fn load_weights(from: *const i8) -> __m256i {
+        // SAFETY: AVX2, and 32 bytes readable (trait contract).
+        unsafe { _mm256_loadu_si256(from.cast()) }
+    }
+    #[inline(always)]
+    unsafe fn broadcast_quad(from: *const i8) -> __m256i {
+        // SAFETY: AVX2, and 4 bytes readable (trait contract).
+        unsafe { _mm256_set1_epi32(from.cast::<i32>().read_unaligned()) }
+    }
+    #[inline(always)]
+    unsafe fn dot_quads(sum: __m256i, activations: __m256i, weights: __m256i) -> __m256i {
+        // SAFETY: the caller runs on AVX2 (trait contract).
+        unsafe {
+            let pairs = _mm256_maddubs_epi16(activations, weights);
+            _mm256_add_epi32(sum, _mm256_madd_epi16(pairs, _mm256_set1_epi16(1)))
+        }
+    }
+    #[inline(always)]
+    unsafe fn add_scaled(total: __m256, sum: __m256i, scale: f32) -> __m256 {
+        // SAFETY: the caller runs on AVX2 (trait contract).
+        unsafe {
+            _mm256_add_ps(
+                total,
+                _mm256_mul_ps(_mm256_cvtepi32_ps(sum), _mm256_set1_ps(scale)),
+            )
+        }
+    }
+    #[inline(always)]
+    unsafe fn load(from: *const f32) -> __m256 {
+        // SAFETY: AVX2, and 8 floats readable (trait contract).
+        unsafe { _mm256_loadu_ps(from) }
+    }
+    #[inline(always)]
+    unsafe fn store(to: *mut f32, value: __m256) {
+        // SAFETY: AVX2, and 8 floats writable (trait contract).
+        unsafe { _mm256_storeu_ps(to, value) }
+    }
+    #[inline(always)]
+    unsafe fn mul(a: __m256, b: __m256) -> __m256 {
+        // SAFETY: the caller runs on AVX2 (trait contract).
+        unsafe { _mm256_mul_ps(a, b) }
+    }
+    #[inline(always)]
+    unsafe fn add(a: __m256, b: __m256) -> __m256 {
+        // SAFETY: the caller runs on AVX2 (trait contract).
+        unsafe { _mm256_add_ps(a, b) }
+    }
+}
+
+// SAFETY: as for `PairSumsYmm`, with AVX-512 F/BW/VNNI.
+unsafe impl Int8Lanes for VnniZmm {
+    type Integers = __m512i;
+    type Floats = __m512;
+    const WIDTH: usize = 16;
+    #[inline(always)]
+    unsafe fn zero_integers() -> __m512i {
+        // SAFETY: the caller runs on AVX-512F (trait contract).
+        unsafe { _mm512_setzero_si512() }
+    }
+    #[inline(always)]
+    unsafe fn zero_floats() -> __m512 {
+        // SAFETY: the caller runs on AVX-512F (trait contract).
+        unsafe { _mm512_setzero_ps() }
+    }
+    #[inline(always)]
+    unsafe fn load_weights(from: *const i8) -> __m512i {
+        // SAFETY: AVX-512F, and 64 bytes readable (trait contract).
+        unsafe { _mm512_loadu_si512(from.cast()) }
+    }
+    #[inline(always)]
+    unsafe fn broadcast_quad(from: *const i8) -> __m512i {
+        // SAFETY: AVX-512F, and 4 bytes readable (trait contract).
+        unsafe { _mm512_set1_epi32(from.cast::<i32>().read_unaligned()) }
+    }
+    #[inline(always)]
+    unsafe fn dot_quads(sum: __m512i, activations: __m512i, weights: __m512i) -> __m512i {
+        // SAFETY: the caller runs on AVX-512 VNNI (trait contract).
+        unsafe { _mm512_dpbusd_epi32(sum, activations, weights) }
+    }
+    #[inline(always)]
+    unsafe fn add_scaled(total: __m512, sum: __m512i, scale: f32) -> __m512 {
+        // SAFETY: the caller runs on AVX-512F (trait contract).
+        unsafe {
+            _mm512_add_ps(
+                total,
+                _mm512_mul_ps(_mm512_cvtepi32_ps(sum), _mm512_set1_ps(scale)),
+            )
+        }
+    }
+    #[inline(always)]
+    unsafe fn load(from: *const f32) -> __m512 {
+        // SAFETY: AVX-512F, and 16 floats readable (trait contract).
+        unsafe { _mm512_loadu_ps(from) }
+    }
+    #[inline(always)]
+    unsafe fn store(to: *mut f32, value: __m512) {
+        // SAFETY: AVX-512F, and 16 floats writable (trait contract).
+        unsafe { _mm512_storeu_ps(to, value) }
+    }
+    #[inline(always)]
+    unsafe fn mul(a: __m512, b: __m512) -> __m512 {
+        // SAFETY: the caller runs on AVX-512F (trait contract).
+        unsafe { _mm512_mul_ps(a, b) }
+    }
+    #[inline(always)]
+    unsafe fn add(a: __m512, b: __m512) -> __m512 {
+        // SAFETY: the caller runs on AVX-512F (trait contract).
+        unsafe { _mm512_add_ps(a, b) }
+    }
+}
+
+/// The pixels of one tile: how many there are (`count <= P`; the last tile of a map may be
+/// short) and where they read.
+#[derive(Clone, Copy, Debug)]
+struct PixelTile<const P: usize> {
+    count: usize,
+    /// Input coordinates of kernel tap (0, 0) per pixel, negative inside the padding.
+    origins: [(isize, isize); P],
+}
+
+impl<const P: usize> PixelTile<P> {
     fn new(shape: &ConvShape, first: usize, count: usize) -> Self {
         let out_width = shape.out_width();
         let origins = core::array::from_fn(|pixel| {
@@ -45,21 +233,12 @@ impl PixelTile {
                 ((position % out_width) * shape.stride) as isize - shape.padding_width as isize,
             )
         });
-        PixelTile {
-            first,
-            count,
-            origins,
-        }
+        PixelTile { count, origins }
     }
 
     /// The input row (pixel) each pixel of the tile reads at kernel tap `(kernel_y,
     /// kernel_x)`, or `None` where the tap lies in the padding or the pixel is past `count`.
-    pub fn rows(
-        &self,
-        shape: &ConvShape,
-        kernel_y: usize,
-        kernel_x: usize,
-    ) -> [Option<usize>; PIXELS] {
+    fn rows(&self, shape: &ConvShape, kernel_y: usize, kernel_x: usize) -> [Option<usize>; P] {
         core::array::from_fn(|pixel| {
             let (top, left) = self.origins[pixel];
             let in_y = top + kernel_y as isize;
@@ -79,116 +258,87 @@ pub(crate) fn tiles_apply(shape: &ConvShape, input: &QuantizedRows<'_>) -> bool 
     input.nonnegative && shape.in_channels.is_multiple_of(QUAD)
 }
 
-/// Runs `tile(pixels, channel, width)` over the whole output for each channel block, widest
-/// of `widths` first (each a multiple of the next); channels left over go to the scalar
-/// reference.
-pub(crate) fn for_each_tile(
-    shape: &ConvShape,
-    input: &QuantizedRows<'_>,
-    parameters: (&[i8], &[f32], &[f32]),
-    output: &mut [f32],
-    accumulate: Accumulate,
-    widths: &[usize],
-    mut tile: impl FnMut(&PixelTile, usize, usize, &mut [f32]),
-) {
-    let positions = shape.out_height() * shape.out_width();
-    for first in (0..positions).step_by(PIXELS) {
-        let pixels = PixelTile::new(shape, first, (positions - first).min(PIXELS));
-        let mut channel = 0;
-        for &width in widths {
-            while channel + width <= shape.out_channels {
-                tile(&pixels, channel, width, output);
-                channel += width;
-            }
-        }
-        if channel < shape.out_channels {
-            conv_int8_pixels(
-                shape,
-                input,
-                parameters,
-                output,
-                accumulate,
-                first..first + pixels.count,
-                channel..shape.out_channels,
-            );
-        }
-    }
-}
-
-/// Channels of one AVX2 vector (eight i32 or f32 lanes; 32 weight bytes, one quad each).
-pub(crate) const AVX2_LANES: usize = 8;
-
-/// f32 totals of an AVX2 tile: `VECTORS` x 8 channels per pixel.
-type Avx2Totals<const VECTORS: usize> = [[__m256; VECTORS]; PIXELS];
-
-/// The f32 totals of the tile `pixels` x `VECTORS * 8` channels from `channel`.
-///
-/// Per quad and 8 output channels, `vpmaddubsw` multiplies the pixel's four activations (u8)
-/// by the four weights (i8) and adds adjacent pairs into i16 lanes, `vpmaddwd` by ones adds
-/// the two pairs into an i32 lane, `vpaddd` accumulates. `vpmaddubsw` saturates its i16 pair
-/// sums; with activations in 0..=127 and weights in -127..=127 (the tool's range) a pair sum
-/// lies within ±2 x 127 x 127 = ±32258, and even a weight of -128 (which no tool writes, but
-/// a file may hold) gives at most 2 x 127 x 128 = 32512: inside i16's -32768..=32767, so
-/// nothing saturates and the sums are exact. (An activation of -1 as i8 reads as 255 as u8
-/// and could reach 2 x 255 x 127 = 64770: why negative rows never come here.) The i32 sum of a tap cannot overflow either:
-/// 127 x 127 x in_channels < 2^31 up to 133,000 input channels.
+/// The exact i32 sums of one kernel tap: `P` pixels (their activation rows) x `V` vectors
+/// of channels, over every input-channel quad. Kept apart from the f32 side so the sums
+/// live in registers for the whole quad loop.
 ///
 /// # Safety
-/// The CPU supports AVX2 and FMA; the slices have the lengths `shape` implies;
-/// [`tiles_apply`] holds; `channel + VECTORS * 8 <= out_channels`; `pixels` is a tile of
-/// this output.
-#[target_feature(enable = "avx2,fma")]
-unsafe fn avx2_tile<const VECTORS: usize>(
+/// The CPU supports `L`; each pointer in `activations` starts a row of `4 quads` readable
+/// bytes; `weights` points at quad 0 of the tap's first channel of the block, with `quads`
+/// quads of `out_channels` channels readable from there and `V WIDTH` channels in the block.
+#[inline(always)]
+unsafe fn tap_sums<L: Int8Lanes, const P: usize, const V: usize>(
+    activations: [*const i8; P],
+    weights: *const i8,
+    quads: usize,
+    out_channels: usize,
+) -> [[L::Integers; V]; P] {
+    // SAFETY: the caller runs on `L`'s CPU.
+    let mut sums = [[unsafe { L::zero_integers() }; V]; P];
+    for quad in 0..quads {
+        // SAFETY: quad `quad` of the block's channels and of each row is inside what the
+        // caller vouched for.
+        unsafe {
+            let row = weights.add(quad * out_channels * QUAD);
+            let vectors: [L::Integers; V] =
+                core::array::from_fn(|vector| L::load_weights(row.add(vector * L::WIDTH * QUAD)));
+            for pixel in 0..P {
+                let broadcast = L::broadcast_quad(activations[pixel].add(quad * QUAD));
+                for vector in 0..V {
+                    sums[pixel][vector] =
+                        L::dot_quads(sums[pixel][vector], broadcast, vectors[vector]);
+                }
+            }
+        }
+    }
+    sums
+}
+
+/// The f32 totals of the tile `pixels` x `V WIDTH` channels from `channel`.
+///
+/// # Safety
+/// The CPU supports `L`; the slices have the lengths `shape` implies; [`tiles_apply`]
+/// holds; `channel + V WIDTH <= out_channels`; `pixels` is a tile of this output.
+#[inline(always)]
+unsafe fn tile<L: Int8Lanes, const P: usize, const V: usize>(
     shape: &ConvShape,
     input: &QuantizedRows<'_>,
     weight: &[i8],
-    pixels: &PixelTile,
+    pixels: &PixelTile<P>,
     channel: usize,
-) -> Avx2Totals<VECTORS> {
+) -> [[L::Floats; V]; P] {
     let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
-    let quads = in_channels / QUAD;
-    let ones = _mm256_set1_epi16(1);
-    let mut totals = [[_mm256_setzero_ps(); VECTORS]; PIXELS];
+    // SAFETY: the caller runs on `L`'s CPU.
+    let mut totals = [[unsafe { L::zero_floats() }; V]; P];
     for kernel_y in 0..shape.kernel_height {
         for kernel_x in 0..shape.kernel_width {
             let rows = pixels.rows(shape, kernel_y, kernel_x);
             // A pixel off the input reads the first one on it; its sum is discarded below.
-            let Some(&Some(any_row)) = rows.iter().find(|row| row.is_some()) else {
+            let Some(any_row) = rows.iter().flatten().next().copied() else {
                 continue;
             };
-            let activations: [*const u8; PIXELS] = rows.map(|row| {
-                input.values[row.unwrap_or(any_row) * in_channels..]
-                    .as_ptr()
-                    .cast::<u8>()
-            });
+            let activations =
+                rows.map(|row| input.values[row.unwrap_or(any_row) * in_channels..].as_ptr());
             let tap = kernel_y * shape.kernel_width + kernel_x;
-            let taps = &weight[int8_quad_index(in_channels, out_channels, tap, 0, channel)..];
-            let mut sums = [[_mm256_setzero_si256(); VECTORS]; PIXELS];
-            for quad in 0..quads {
-                // SAFETY: the quad's `VECTORS * 32` weight bytes from `channel` lie inside the
-                // tap (`channel + 8 VECTORS <= out_channels`); each pixel pointer starts a row
-                // of `in_channels` values, a multiple of 4, so bytes 4 quad .. 4 quad + 4 are
-                // inside it.
-                unsafe {
-                    let row = taps.as_ptr().add(quad * out_channels * QUAD);
-                    let weights: [__m256i; VECTORS] = core::array::from_fn(|vector| {
-                        _mm256_loadu_si256(row.add(vector * AVX2_LANES * QUAD).cast())
-                    });
-                    for (sum, &pixel) in sums.iter_mut().zip(&activations) {
-                        let quad_bytes = pixel.add(quad * QUAD).cast::<i32>().read_unaligned();
-                        let broadcast = _mm256_set1_epi32(quad_bytes);
-                        for (sum, &weights) in sum.iter_mut().zip(&weights) {
-                            let pairs = _mm256_maddubs_epi16(broadcast, weights);
-                            *sum = _mm256_add_epi32(*sum, _mm256_madd_epi16(pairs, ones));
-                        }
-                    }
-                }
-            }
-            for ((total, sum), row) in totals.iter_mut().zip(&sums).zip(rows) {
-                let Some(row) = row else { continue };
-                let scale = _mm256_set1_ps(input.scales[row]);
-                for (total, &sum) in total.iter_mut().zip(sum) {
-                    *total = _mm256_add_ps(*total, _mm256_mul_ps(_mm256_cvtepi32_ps(sum), scale));
+            let weights = &weight[int8_quad_index(in_channels, out_channels, tap, 0, channel)..];
+            // SAFETY: each row holds `in_channels` = 4 quads values (`tiles_apply`); the
+            // tap's quads of the block's `V WIDTH` channels are inside `weight`
+            // (`channel + V WIDTH <= out_channels`).
+            let sums = unsafe {
+                tap_sums::<L, P, V>(
+                    activations,
+                    weights.as_ptr(),
+                    in_channels / QUAD,
+                    out_channels,
+                )
+            };
+            for pixel in 0..P {
+                let Some(row) = rows[pixel] else { continue };
+                let scale = input.scales[row];
+                for vector in 0..V {
+                    // SAFETY: the caller runs on `L`'s CPU.
+                    totals[pixel][vector] =
+                        unsafe { L::add_scaled(totals[pixel][vector], sums[pixel][vector], scale) };
                 }
             }
         }
@@ -196,94 +346,309 @@ unsafe fn avx2_tile<const VECTORS: usize>(
     totals
 }
 
-/// `output (+)= totals * weight_scales + bias` for the tile's pixels, unfused as the scalar
-/// reference does it.
+/// `out (+)= totals * weight_scales + bias` for `count` pixels whose channel blocks start
+/// at `out[pixel * stride]`, unfused as the scalar reference does it.
 ///
 /// # Safety
-/// The CPU supports AVX2; `channel + VECTORS * 8 <= out_channels`; the tile's pixels are
-/// inside `output`.
-#[target_feature(enable = "avx2,fma")]
-unsafe fn avx2_store<const VECTORS: usize>(
-    totals: &Avx2Totals<VECTORS>,
-    pixels: &PixelTile,
+/// The CPU supports `L`; `weight_scales` and `bias` hold `V WIDTH` floats; `out` holds the
+/// `V WIDTH` channels of each of the `count` pixels, `stride` apart.
+#[inline(always)]
+unsafe fn store<L: Int8Lanes, const P: usize, const V: usize>(
+    totals: &[[L::Floats; V]; P],
+    count: usize,
     (weight_scales, bias): (&[f32], &[f32]),
-    output: &mut [f32],
-    out_channels: usize,
-    channel: usize,
+    out: &mut [f32],
+    stride: usize,
     accumulate: Accumulate,
 ) {
-    let width = VECTORS * AVX2_LANES;
-    let weight_scales = &weight_scales[channel..channel + width];
-    let bias = &bias[channel..channel + width];
-    for (pixel, total) in totals.iter().enumerate().take(pixels.count) {
-        let out = &mut output[(pixels.first + pixel) * out_channels + channel..][..width];
+    for (pixel, total) in totals.iter().enumerate().take(count) {
+        let out = &mut out[pixel * stride..][..V * L::WIDTH];
         for (vector, &total) in total.iter().enumerate() {
-            let at = vector * AVX2_LANES;
-            // SAFETY: `out`, `weight_scales` and `bias` hold `width` floats; each access
-            // covers 8 from `at < width`.
+            let at = vector * L::WIDTH;
+            // SAFETY: `out`, `weight_scales` and `bias` hold `V WIDTH` floats; each access
+            // covers WIDTH from `at`; the caller runs on `L`'s CPU.
             unsafe {
-                let scaled = _mm256_mul_ps(total, _mm256_loadu_ps(weight_scales.as_ptr().add(at)));
-                let mut value = _mm256_add_ps(scaled, _mm256_loadu_ps(bias.as_ptr().add(at)));
+                let scaled = L::mul(total, L::load(weight_scales.as_ptr().add(at)));
+                let mut value = L::add(scaled, L::load(bias.as_ptr().add(at)));
                 if accumulate == Accumulate::Add {
-                    value = _mm256_add_ps(_mm256_loadu_ps(out.as_ptr().add(at)), value);
+                    value = L::add(L::load(out.as_ptr().add(at)), value);
                 }
-                _mm256_storeu_ps(out.as_mut_ptr().add(at), value);
+                L::store(out.as_mut_ptr().add(at), value);
             }
         }
     }
 }
 
-/// The AVX2 int8 convolution: tiles of 4 pixels x 16 channels, then 8, the rest scalar.
+/// The channel blocks of `V WIDTH` channels from `*channel` while they fit, each over
+/// every pixel tile of the output; advances `*channel` past them.
 ///
 /// # Safety
-/// The CPU supports AVX2 and FMA; the slice lengths are those
+/// As for [`conv`].
+#[inline(always)]
+unsafe fn channel_blocks<L: Int8Lanes, const P: usize, const V: usize>(
+    shape: &ConvShape,
+    input: &QuantizedRows<'_>,
+    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+    channel: &mut usize,
+) {
+    let out_channels = shape.out_channels;
+    let positions = shape.out_height() * shape.out_width();
+    let width = V * L::WIDTH;
+    while *channel + width <= out_channels {
+        let block = *channel..*channel + width;
+        for first in (0..positions).step_by(P) {
+            let pixels = PixelTile::<P>::new(shape, first, (positions - first).min(P));
+            // SAFETY: the caller's promises; the block and the tile are inside the output.
+            unsafe {
+                let totals = tile::<L, P, V>(shape, input, weight, &pixels, *channel);
+                let out = &mut output[first * out_channels + *channel..];
+                let parameters = (&weight_scales[block.clone()], &bias[block.clone()]);
+                store::<L, P, V>(
+                    &totals,
+                    pixels.count,
+                    parameters,
+                    out,
+                    out_channels,
+                    accumulate,
+                );
+            }
+        }
+        *channel += width;
+    }
+}
+
+/// The whole int8 convolution: blocks of `V` vectors of channels, then single vectors, the
+/// channels left over on the scalar reference.
+///
+/// # Safety
+/// The CPU supports `L`; the slice lengths are those
 /// [`assert_int8_lengths`](crate::kernels::scalar::assert_int8_lengths) checks;
 /// [`tiles_apply`] holds.
-pub(crate) unsafe fn conv_int8_avx2(
+#[inline(always)]
+pub(crate) unsafe fn conv<L: Int8Lanes, const P: usize, const V: usize>(
+    shape: &ConvShape,
+    input: &QuantizedRows<'_>,
+    parameters: (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    let mut channel = 0;
+    // SAFETY: this function's contract is theirs.
+    unsafe {
+        channel_blocks::<L, P, V>(shape, input, parameters, output, accumulate, &mut channel);
+        channel_blocks::<L, P, 1>(shape, input, parameters, output, accumulate, &mut channel);
+    }
+    if channel < shape.out_channels {
+        let positions = shape.out_height() * shape.out_width();
+        conv_int8_pixels(
+            shape,
+            input,
+            parameters,
+            output,
+            accumulate,
+            0..positions,
+            channel..shape.out_channels,
+        );
+    }
+}
+
+/// Output pixel `(out_y, out_x)` of [`conv`] (overwriting) into `output` (its
+/// `out_channels` values): the one-pixel tile, so the same bits.
+///
+/// # Safety
+/// As for [`conv`]; the pixel is in the output and `output` holds its channels.
+#[inline(always)]
+pub(crate) unsafe fn conv_pixel<L: Int8Lanes, const V: usize>(
+    shape: &ConvShape,
+    input: &QuantizedRows<'_>,
+    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
+    (out_y, out_x): (usize, usize),
+    output: &mut [f32],
+) {
+    let pixels = PixelTile::<1>::new(shape, out_y * shape.out_width() + out_x, 1);
+    let out_channels = shape.out_channels;
+    let mut channel = 0;
+    while channel < out_channels {
+        let block = channel..out_channels;
+        let parameters = (&weight_scales[block.clone()], &bias[block.clone()]);
+        let out = &mut output[channel..];
+        // SAFETY: the caller's promises; each block is inside `out_channels`.
+        unsafe {
+            if channel + V * L::WIDTH <= out_channels {
+                let totals = tile::<L, 1, V>(shape, input, weight, &pixels, channel);
+                store::<L, 1, V>(&totals, 1, parameters, out, 0, Accumulate::Overwrite);
+                channel += V * L::WIDTH;
+            } else if channel + L::WIDTH <= out_channels {
+                let totals = tile::<L, 1, 1>(shape, input, weight, &pixels, channel);
+                store::<L, 1, 1>(&totals, 1, parameters, out, 0, Accumulate::Overwrite);
+                channel += L::WIDTH;
+            } else {
+                break;
+            }
+        }
+    }
+    if channel < out_channels {
+        conv_int8_pixel(
+            shape,
+            input,
+            (weight, weight_scales, bias),
+            output,
+            Accumulate::Overwrite,
+            (out_y, out_x),
+            channel..out_channels,
+        );
+    }
+}
+
+/// Pixels and channel vectors of a tile, per backend: AVX2 has 16 YMM registers (8 sums,
+/// 2 weight vectors, the broadcast, the ones and a product); AVX-512 has 32 ZMM registers.
+const AVX2_TILE: (usize, usize) = (4, 2);
+const VNNI_TILE: (usize, usize) = (6, 4);
+
+/// [`conv`] compiled for AVX2.
+///
+/// # Safety
+/// The CPU supports AVX2 and FMA; otherwise as for [`conv`].
+#[target_feature(enable = "avx2,fma")]
+pub(crate) unsafe fn conv_avx2(
+    shape: &ConvShape,
+    input: &QuantizedRows<'_>,
+    parameters: (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    // SAFETY: this function's contract is the body's.
+    unsafe {
+        conv::<PairSumsYmm, { AVX2_TILE.0 }, { AVX2_TILE.1 }>(
+            shape, input, parameters, output, accumulate,
+        )
+    }
+}
+
+/// [`conv_pixel`] compiled for AVX2.
+///
+/// # Safety
+/// As for [`conv_avx2`]; the pixel is in the output and `output` holds its channels.
+#[target_feature(enable = "avx2,fma")]
+pub(crate) unsafe fn conv_pixel_avx2(
+    shape: &ConvShape,
+    input: &QuantizedRows<'_>,
+    parameters: (&[i8], &[f32], &[f32]),
+    pixel: (usize, usize),
+    output: &mut [f32],
+) {
+    // SAFETY: this function's contract is the body's.
+    unsafe { conv_pixel::<PairSumsYmm, { AVX2_TILE.1 }>(shape, input, parameters, pixel, output) }
+}
+
+/// [`conv`] compiled for AVX-512 VNNI.
+///
+/// # Safety
+/// The CPU supports AVX-512 F, BW, VL and VNNI; otherwise as for [`conv`].
+#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vnni")]
+pub(crate) unsafe fn conv_vnni(
+    shape: &ConvShape,
+    input: &QuantizedRows<'_>,
+    parameters: (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    // SAFETY: this function's contract is the body's.
+    unsafe {
+        conv::<VnniZmm, { VNNI_TILE.0 }, { VNNI_TILE.1 }>(
+            shape, input, parameters, output, accumulate,
+        )
+    }
+}
+
+/// [`conv_pixel`] compiled for AVX-512 VNNI.
+///
+/// # Safety
+/// As for [`conv_vnni`]; the pixel is in the output and `output` holds its channels.
+#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vnni")]
+pub(crate) unsafe fn conv_pixel_vnni(
+    shape: &ConvShape,
+    input: &QuantizedRows<'_>,
+    parameters: (&[i8], &[f32], &[f32]),
+    pixel: (usize, usize),
+    output: &mut [f32],
+) {
+    // SAFETY: this function's contract is the body's.
+    unsafe { conv_pixel::<VnniZmm, { VNNI_TILE.1 }>(shape, input, parameters, pixel, output) }
+}
+
+/// A backend's [`conv`] wrapper.
+pub(crate) type ConvKernel =
+    unsafe fn(&ConvShape, &QuantizedRows<'_>, (&[i8], &[f32], &[f32]), &mut [f32], Accumulate);
+
+/// A backend's [`conv_pixel`] wrapper.
+pub(crate) type PixelKernel =
+    unsafe fn(&ConvShape, &QuantizedRows<'_>, (&[i8], &[f32], &[f32]), (usize, usize), &mut [f32]);
+
+/// [`Kernels::conv_int8`](crate::kernels::Kernels::conv_int8) on `kernel`: the lengths
+/// checked, inputs the tiles do not take ([`tiles_apply`]) on the scalar reference.
+///
+/// # Safety
+/// The CPU supports what `kernel` requires.
+pub(crate) unsafe fn checked_conv(
+    kernel: ConvKernel,
     shape: &ConvShape,
     input: &QuantizedRows<'_>,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
-    let out_channels = shape.out_channels;
-    for_each_tile(
-        shape,
-        input,
-        (weight, weight_scales, bias),
-        output,
-        accumulate,
-        &[2 * AVX2_LANES, AVX2_LANES],
-        |pixels, channel, width, output| {
-            // SAFETY: the caller's promises, and `for_each_tile` hands out channel blocks of
-            // `width` inside `out_channels` and tiles of this output.
-            unsafe {
-                if width == 2 * AVX2_LANES {
-                    let totals = avx2_tile::<2>(shape, input, weight, pixels, channel);
-                    let parameters = (weight_scales, bias);
-                    avx2_store(
-                        &totals,
-                        pixels,
-                        parameters,
-                        output,
-                        out_channels,
-                        channel,
-                        accumulate,
-                    );
-                } else {
-                    let totals = avx2_tile::<1>(shape, input, weight, pixels, channel);
-                    let parameters = (weight_scales, bias);
-                    avx2_store(
-                        &totals,
-                        pixels,
-                        parameters,
-                        output,
-                        out_channels,
-                        channel,
-                        accumulate,
-                    );
-                }
-            }
-        },
-    );
+    assert_int8_lengths(shape, input, (weight, weight_scales, bias), output.len());
+    if !tiles_apply(shape, input) {
+        let positions = shape.out_height() * shape.out_width();
+        let parameters = (weight, weight_scales, bias);
+        let channels = 0..shape.out_channels;
+        return conv_int8_pixels(
+            shape,
+            input,
+            parameters,
+            output,
+            accumulate,
+            0..positions,
+            channels,
+        );
+    }
+    // SAFETY: the caller vouches for the CPU; the lengths were asserted and `tiles_apply`
+    // checked just above.
+    unsafe {
+        kernel(
+            shape,
+            input,
+            (weight, weight_scales, bias),
+            output,
+            accumulate,
+        )
+    }
+}
+
+/// [`Kernels::conv_int8_pixel`](crate::kernels::Kernels::conv_int8_pixel) on `kernel`, as
+/// [`checked_conv`] is for the whole map.
+///
+/// # Safety
+/// The CPU supports what `kernel` requires.
+pub(crate) unsafe fn checked_conv_pixel(
+    kernel: PixelKernel,
+    shape: &ConvShape,
+    input: &QuantizedRows<'_>,
+    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
+    (out_y, out_x): (usize, usize),
+    output: &mut [f32],
+) {
+    let parameters = (weight, weight_scales, bias);
+    assert_int8_pixel_lengths(shape, input, parameters, (out_y, out_x), output.len());
+    if !tiles_apply(shape, input) {
+        let (channels, pixel) = (0..shape.out_channels, (out_y, out_x));
+        let overwrite = Accumulate::Overwrite;
+        return conv_int8_pixel(shape, input, parameters, output, overwrite, pixel, channels);
+    }
+    // SAFETY: the caller vouches for the CPU; the lengths and the pixel were asserted and
+    // `tiles_apply` checked just above.
+    unsafe { kernel(shape, input, parameters, (out_y, out_x), output) }
 }
