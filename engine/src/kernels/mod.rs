@@ -348,7 +348,8 @@ pub struct QuantizedRows<'a> {
     pub scales: &'a [f32],
     /// Every value is in 0..=127 (true of every ReLU output): the values then read the same
     /// as u8, which the unsigned-by-signed integer dot products need. `false` only promises
-    /// nothing.
+    /// nothing. For [`Kernels::conv_int8_pixel`] it need only hold on the rows that pixel's
+    /// taps read.
     pub nonnegative: bool,
 }
 
@@ -461,12 +462,20 @@ pub fn convolve_pixel(
             values: weights,
             scales: weight_scales,
         } => {
+            let values: &[i8] = &bytemuck::cast_slice(values)[..shape.input_len()];
+            // Not kept with the input: found on the rows this pixel reads (a few hundred
+            // bytes against that many times `out_channels` products). The flag only lets the
+            // fast paths run; every path gives the same bits.
+            let in_channels = shape.in_channels;
+            let nonnegative = scalar::taps_inside(shape, pixel.0, pixel.1).all(|(row, _)| {
+                values[row * in_channels..][..in_channels]
+                    .iter()
+                    .all(|&value| value >= 0)
+            });
             let input = QuantizedRows {
-                values: &bytemuck::cast_slice(values)[..shape.input_len()],
+                values,
                 scales: &scales[..shape.in_height * shape.in_width],
-                // Not kept with the input; `false` is always correct (every kernel's paths
-                // give the same bits, the flag only lets the fast ones run).
-                nonnegative: false,
+                nonnegative,
             };
             kernels.conv_int8_pixel(shape, &input, weights, weight_scales, bias, pixel, output)
         }
