@@ -1,5 +1,9 @@
-//! Element-wise and normalization operations over channels-last data. Cheap next to the
-//! convolutions, so one portable implementation serves every backend.
+//! Element-wise and normalization operations over channels-last data: one portable
+//! implementation, which the SIMD backends compile again with their vector width (the
+//! functions are `#[inline(always)]` so the backends' `#[target_feature]` wrappers get their
+//! own copy; see [`Kernels::group_norm`](super::Kernels::group_norm)). Every operation keeps
+//! its order of floating-point operations whatever the width (no reassociation, no fused
+//! multiply-add), so every backend gives the same bits.
 
 /// The activation applied after a normalization.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -44,6 +48,7 @@ pub fn activate_all(data: &mut [f32], activation: Activation) {
 /// GroupNorm over `[positions, channels]` (groups of consecutive channels, statistics over
 /// all positions), then the affine transform and `activation`, in place. Two-pass mean and
 /// variance in f64 accumulators: the trunk's groups hold up to 300k values.
+#[inline(always)]
 pub fn group_norm(
     data: &mut [f32],
     channels: usize,
@@ -52,9 +57,7 @@ pub fn group_norm(
     beta: &[f32],
     activation: Activation,
 ) {
-    // Groups are processed a batch at a time, each pass walking the data once in memory
-    // order (a pass per group strided across every pixel was a tenth of the int8 trunk's
-    // time). Each group's sums still add the pixels in order, as before.
+    // Groups are processed a batch at a time, each pass walking the data in memory order.
     const GROUPS: usize = 64;
     let group_size = channels / groups;
     let count = ((data.len() / channels) * group_size) as f64;
@@ -62,27 +65,30 @@ pub fn group_norm(
         let batch = (groups - first_group).min(GROUPS);
         let first = first_group * group_size;
         let width = batch * group_size;
+        let span = first..first + width;
         let mut mean = [0.0f64; GROUPS];
-        for pixel in data.chunks_exact(channels) {
-            let values = pixel[first..first + width].chunks_exact(group_size);
-            for (sum, values) in mean.iter_mut().zip(values) {
-                *sum += values.iter().map(|&x| x as f64).sum::<f64>();
-            }
-        }
+        let no_centres = [0.0f64; GROUPS];
+        sum_per_group(
+            data,
+            channels,
+            span.clone(),
+            group_size,
+            &no_centres,
+            |x, _| x,
+            &mut mean,
+        );
         mean.iter_mut().for_each(|sum| *sum /= count);
         let mut inverse_std = [0.0f64; GROUPS];
-        for pixel in data.chunks_exact(channels) {
-            let values = pixel[first..first + width].chunks_exact(group_size);
-            for ((squares, values), &mean) in inverse_std.iter_mut().zip(values).zip(&mean) {
-                *squares += values
-                    .iter()
-                    .map(|&x| {
-                        let centred = x as f64 - mean;
-                        centred * centred
-                    })
-                    .sum::<f64>();
-            }
-        }
+        let square = |x: f64, mean: f64| (x - mean) * (x - mean);
+        sum_per_group(
+            data,
+            channels,
+            span,
+            group_size,
+            &mean,
+            square,
+            &mut inverse_std,
+        );
         inverse_std
             .iter_mut()
             .for_each(|squares| *squares = 1.0 / libm::sqrt(*squares / count + NORM_EPSILON));
@@ -105,6 +111,45 @@ pub fn group_norm(
                     *x = activate(*x * a + b, activation);
                 }
             }
+        }
+    }
+}
+
+/// Adds to `sums[g]`, for each group `g` of the channels `span` (`group_size` channels
+/// each, `centres[g]` its centre), the sum of `term(x, centre)` over the group's values.
+/// Sums are kept per channel, one f64 lane each, adding the pixels in memory order, and only
+/// then folded into their groups in channel order: the per-pixel loop is element-wise and
+/// vectorizes. (Summing each group's channels inside every pixel was a dependent chain;
+/// with it, GroupNorm cost as much as the VNNI convolutions of the int8 trunk.)
+#[inline(always)]
+fn sum_per_group(
+    data: &[f32],
+    channels: usize,
+    span: core::ops::Range<usize>,
+    group_size: usize,
+    centres: &[f64],
+    term: impl Fn(f64, f64) -> f64,
+    sums: &mut [f64],
+) {
+    const CHANNELS: usize = 256;
+    let mut channel_sums = [0.0f64; CHANNELS];
+    let mut channel_centres = [0.0f64; CHANNELS];
+    for start in span.clone().step_by(CHANNELS) {
+        let len = (span.end - start).min(CHANNELS);
+        let group_of = |offset: usize| (start + offset - span.start) / group_size;
+        for (offset, centre) in channel_centres[..len].iter_mut().enumerate() {
+            *centre = centres[group_of(offset)];
+        }
+        let channel_sums = &mut channel_sums[..len];
+        channel_sums.fill(0.0);
+        for pixel in data.chunks_exact(channels) {
+            let values = &pixel[start..start + len];
+            for ((sum, &x), &centre) in channel_sums.iter_mut().zip(values).zip(&channel_centres) {
+                *sum += term(x as f64, centre);
+            }
+        }
+        for (offset, &sum) in channel_sums.iter().enumerate() {
+            sums[group_of(offset)] += sum;
         }
     }
 }
@@ -134,6 +179,7 @@ pub fn max_pool_3x3_stride_2(
 }
 
 /// `target += source` then `activation`, element-wise.
+#[inline(always)]
 pub fn add_activate(target: &mut [f32], source: &[f32], activation: Activation) {
     for (t, &s) in target.iter_mut().zip(source) {
         *t = activate(*t + s, activation);
@@ -144,6 +190,7 @@ pub fn add_activate(target: &mut [f32], source: &[f32], activation: Activation) 
 /// that vectorize (`libm::roundf` is a bit-twiddling call per value): there the truncation
 /// and the fraction `value - truncated` are exact, so comparing the fraction with ±0.5
 /// decides exactly as `roundf` does.
+#[inline(always)]
 fn round_half_away(value: f32) -> i32 {
     let truncated = value as i32;
     let fraction = value - truncated as f32;
@@ -160,6 +207,7 @@ pub fn quantize_symmetric(input: &[f32], output: &mut [i8]) -> f32 {
 
 /// [`quantize_symmetric`], also telling whether every quantized value is nonnegative (found
 /// in the quantizing loop itself: no second pass over the output).
+#[inline(always)]
 pub fn quantize_symmetric_signs(input: &[f32], output: &mut [i8]) -> (f32, bool) {
     // |x| as bits: for numbers the integer order is the float order, and NaN patterns sort
     // above infinity, so one integer maximum finds max |x| or reports a non-finite input.
@@ -184,6 +232,23 @@ pub fn quantize_symmetric_signs(input: &[f32], output: &mut [i8]) -> (f32, bool)
         lowest = lowest.min(*q);
     }
     (largest / 127.0, lowest >= 0)
+}
+
+/// [`quantize_symmetric`] per row of `row_len` values of `input`, into `values` (same
+/// length) and `scales` (one per row); returns whether every value is nonnegative.
+#[inline(always)]
+pub fn quantize_rows(input: &[f32], row_len: usize, values: &mut [i8], scales: &mut [f32]) -> bool {
+    let mut nonnegative = true;
+    for ((row, out), scale) in input
+        .chunks_exact(row_len)
+        .zip(values.chunks_exact_mut(row_len))
+        .zip(scales.iter_mut())
+    {
+        let row_nonnegative;
+        (*scale, row_nonnegative) = quantize_symmetric_signs(row, out);
+        nonnegative &= row_nonnegative;
+    }
+    nonnegative
 }
 
 #[cfg(test)]
