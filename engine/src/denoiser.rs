@@ -66,12 +66,11 @@ impl Context<'_> {
         let shape = ConvShape::sequence(length, in_channels, out_channels, kernel, 1, kernel / 2);
         self.convolve(&shape, conv, input, output, Accumulate::Overwrite);
         let output = &mut output[..shape.output_len()];
-        ops::group_norm(
+        self.kernels.group_norm(
             output,
             out_channels,
             groups,
-            norm.gamma,
-            norm.beta,
+            (norm.gamma, norm.beta),
             Activation::Mish,
         );
     }

@@ -40,12 +40,11 @@ fn conv_norm(
     );
     let output = &mut output[..shape.output_len()];
     match &layer.norm {
-        Some(norm) => ops::group_norm(
+        Some(norm) => kernels.group_norm(
             output,
             shape.out_channels,
             ModelConfig::backbone_groups(shape.out_channels),
-            norm.gamma,
-            norm.beta,
+            (norm.gamma, norm.beta),
             activation,
         ),
         None => ops::activate_all(output, activation),
@@ -243,6 +242,7 @@ pub fn encode(
         let store = frame.level(config, level);
         if config.projection_on_demand(level) {
             kernels::store_input(
+                kernels,
                 &projection.weight,
                 &input[..shape.input_len()],
                 shape.in_channels,
@@ -312,7 +312,7 @@ pub fn encode(
                 }
                 None => &input[..output_len],
             };
-            ops::add_activate(&mut output[..output_len], identity, Activation::Relu);
+            kernels.add_activate(&mut output[..output_len], identity, Activation::Relu);
             // The block's output becomes the next block's input.
             buffers.swap(0, 2);
             (height, width, channels) = (out_height, out_width, out_channels);

@@ -925,19 +925,94 @@ fn quantizing_reports_whether_every_value_is_nonnegative() {
     // Rounds to zero next to the row's largest value: still nonnegative once quantized.
     let mut tiny_negative = relu.clone();
     tiny_negative[3] = -1e-6;
-    for (input, expected) in [(&relu, true), (&signed, false), (&tiny_negative, true)] {
-        let mut values = vec![0i8; input.len()];
-        let mut scales = vec![0.0f32; rows];
-        let mut scratch = QuantizeScratch {
-            values: &mut values,
-            scales: &mut scales,
-        };
-        let quantized = scratch.quantize(input, row_len);
-        assert_eq!(quantized.nonnegative, expected);
-        assert_eq!(
-            quantized.nonnegative,
-            quantized.values.iter().all(|&q| q >= 0)
-        );
+    for (name, kernels) in backends() {
+        for (input, expected) in [(&relu, true), (&signed, false), (&tiny_negative, true)] {
+            let mut values = vec![0i8; input.len()];
+            let mut scales = vec![0.0f32; rows];
+            let mut scratch = QuantizeScratch {
+                values: &mut values,
+                scales: &mut scales,
+            };
+            let quantized = scratch.quantize(kernels, input, row_len);
+            assert_eq!(quantized.nonnegative, expected, "{name}");
+            assert_eq!(
+                quantized.nonnegative,
+                quantized.values.iter().all(|&q| q >= 0),
+                "{name}"
+            );
+        }
+    }
+}
+
+/// The element-wise methods (activation quantization, GroupNorm with each activation, the
+/// residual add) are the portable code compiled for each backend's vectors: the same bits
+/// as the scalar reference, on the trunk's and the U-Net's shapes, lengths off the vector
+/// widths, negative values, zero rows and non-finite values.
+#[test]
+fn elementwise_operations_are_bit_identical_on_every_backend() {
+    use scdp_engine::kernels::ops::Activation;
+    let mut rng = Lcg(37);
+    let backends = backends();
+    // (positions, channels, groups): trunk layers (16 channels a group), U-Net blocks (8
+    // groups), and odd sizes.
+    let shapes = [
+        (60 * 80, 64, 4),
+        (15 * 20, 256, 16),
+        (8 * 10, 512, 32),
+        (16, 384, 8),
+        (4, 256, 8),
+        (7, 24, 3),
+        (1, 5, 1),
+    ];
+    for (case, &(positions, channels, groups)) in shapes.iter().enumerate() {
+        let data: Vec<f32> = rng
+            .vec(positions * channels)
+            .iter()
+            .map(|x| x * 3.0 + 0.25)
+            .collect();
+        let gamma = rng.vec(channels);
+        let beta = rng.vec(channels);
+        let mut relu: Vec<f32> = data.iter().map(|x| x.max(0.0)).collect();
+        relu[..channels.min(8)].fill(0.0);
+        let mut non_finite = data.clone();
+        non_finite[channels / 2] = f32::NAN;
+        if positions > 1 {
+            non_finite[channels + channels / 3] = f32::INFINITY;
+        }
+        for (name, kernels) in &backends {
+            let what = format!("{name} case {case}");
+            for activation in [Activation::None, Activation::Relu, Activation::Mish] {
+                let mut expected = data.clone();
+                Scalar.group_norm(&mut expected, channels, groups, (&gamma, &beta), activation);
+                let mut found = data.clone();
+                kernels.group_norm(&mut found, channels, groups, (&gamma, &beta), activation);
+                assert_same_bits(
+                    &found,
+                    &expected,
+                    &format!("{what} group_norm {activation:?}"),
+                );
+
+                let mut expected = data.clone();
+                Scalar.add_activate(&mut expected, &relu, activation);
+                let mut found = data.clone();
+                kernels.add_activate(&mut found, &relu, activation);
+                assert_same_bits(&found, &expected, &format!("{what} add {activation:?}"));
+            }
+            for input in [&data, &relu, &non_finite] {
+                let quantize = |kernels: &dyn Kernels| {
+                    let mut values = vec![0i8; input.len()];
+                    let mut scales = vec![0.0f32; positions];
+                    let nonnegative =
+                        kernels.quantize_rows(input, channels, &mut values, &mut scales);
+                    (values, scales, nonnegative)
+                };
+                let (values, scales, nonnegative) = quantize(*kernels);
+                let (expected_values, expected_scales, expected_nonnegative) = quantize(&Scalar);
+                assert_eq!(values, expected_values, "{what} quantized values");
+                assert_same_bits(&scales, &expected_scales, &format!("{what} scales"));
+                assert_eq!(nonnegative, expected_nonnegative, "{what} nonnegative");
+            }
+        }
     }
 }
 

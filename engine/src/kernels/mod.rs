@@ -18,6 +18,7 @@ pub mod scalar;
 pub mod x86_64;
 
 use crate::weights::Weight;
+use ops::Activation;
 
 /// Which kernel implementation to run.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -338,6 +339,37 @@ pub trait Kernels: Sync {
         base: &[f32],
         output: &mut [f32],
     );
+
+    /// [`ops::quantize_rows`]: per-row symmetric int8 quantization of `input` into `values`
+    /// and `scales`, returning whether every value is nonnegative. Element-wise, like the
+    /// two methods below: implementations compile the portable code for their vectors and
+    /// give the same bits.
+    fn quantize_rows(
+        &self,
+        input: &[f32],
+        row_len: usize,
+        values: &mut [i8],
+        scales: &mut [f32],
+    ) -> bool {
+        ops::quantize_rows(input, row_len, values, scales)
+    }
+
+    /// [`ops::group_norm`], in place.
+    fn group_norm(
+        &self,
+        data: &mut [f32],
+        channels: usize,
+        groups: usize,
+        (gamma, beta): (&[f32], &[f32]),
+        activation: Activation,
+    ) {
+        ops::group_norm(data, channels, groups, gamma, beta, activation)
+    }
+
+    /// [`ops::add_activate`]: `target += source`, then `activation`.
+    fn add_activate(&self, target: &mut [f32], source: &[f32], activation: Activation) {
+        ops::add_activate(target, source, activation)
+    }
 }
 
 /// Activations quantized for an int8 kernel, one symmetric scale per row (a pixel's or a
@@ -363,20 +395,16 @@ pub struct QuantizeScratch<'a> {
 impl QuantizeScratch<'_> {
     /// Quantizes `input`, rows of `row_len` values (the activation scheme of int8 weights
     /// files: symmetric, scale = max |x| / 127 per row), and returns the view.
-    pub fn quantize(&mut self, input: &[f32], row_len: usize) -> QuantizedRows<'_> {
+    pub fn quantize(
+        &mut self,
+        kernels: &dyn Kernels,
+        input: &[f32],
+        row_len: usize,
+    ) -> QuantizedRows<'_> {
         let rows = input.len() / row_len;
         let values = &mut self.values[..input.len()];
         let scales = &mut self.scales[..rows];
-        let mut nonnegative = true;
-        for ((row, out), scale) in input
-            .chunks_exact(row_len)
-            .zip(values.chunks_exact_mut(row_len))
-            .zip(scales.iter_mut())
-        {
-            let row_nonnegative;
-            (*scale, row_nonnegative) = ops::quantize_symmetric_signs(row, out);
-            nonnegative &= row_nonnegative;
-        }
+        let nonnegative = kernels.quantize_rows(input, row_len, values, scales);
         QuantizedRows {
             values,
             scales,
@@ -412,7 +440,7 @@ pub fn convolve(
     match (*weight, activations) {
         (Weight::F32(values), _) => kernels.conv(shape, input, values, bias, output, accumulate),
         (Weight::Int8 { values, scales }, Activations::Int8(scratch)) => {
-            let input = scratch.quantize(input, shape.in_channels);
+            let input = scratch.quantize(kernels, input, shape.in_channels);
             kernels.conv_int8(shape, &input, values, scales, bias, output, accumulate);
         }
         (Weight::Int8 { values, scales }, Activations::F32) => {
@@ -425,6 +453,7 @@ pub fn convolve(
 /// read: copied for f32 weights; quantized per row (`row_len` values) for int8 weights,
 /// the values as bytes at the front of `values` and one scale per row in `scales`.
 pub fn store_input(
+    kernels: &dyn Kernels,
     weight: &Weight<'_>,
     input: &[f32],
     row_len: usize,
@@ -438,7 +467,7 @@ pub fn store_input(
                 values: bytemuck::cast_slice_mut(values),
                 scales,
             };
-            scratch.quantize(input, row_len);
+            scratch.quantize(kernels, input, row_len);
         }
     }
 }

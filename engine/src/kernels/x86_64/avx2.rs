@@ -5,8 +5,9 @@
 //! [`sequence`] kernels.
 
 use super::f32_tile::{self, Ymm};
-use super::int8;
 use super::sequence::{self, Sequence};
+use super::{elementwise, int8};
+use crate::kernels::ops::Activation;
 use crate::kernels::scalar::{Scalar, assert_conv_lengths, assert_conv_pixel_lengths};
 use crate::kernels::{Accumulate, ConvShape, Kernels, QuantizedRows};
 
@@ -245,5 +246,33 @@ impl Kernels for Avx2 {
     ) {
         // SAFETY: `self` exists only when AVX2 and FMA were detected.
         unsafe { sequence::matvec(weight, Some(row_scales), input, base, output) }
+    }
+
+    fn quantize_rows(
+        &self,
+        input: &[f32],
+        row_len: usize,
+        values: &mut [i8],
+        scales: &mut [f32],
+    ) -> bool {
+        // SAFETY: `self` exists only when AVX2 and FMA were detected.
+        unsafe { elementwise::quantize_rows_avx2(input, row_len, values, scales) }
+    }
+
+    fn group_norm(
+        &self,
+        data: &mut [f32],
+        channels: usize,
+        groups: usize,
+        affine: (&[f32], &[f32]),
+        activation: Activation,
+    ) {
+        // SAFETY: `self` exists only when AVX2 and FMA were detected.
+        unsafe { elementwise::group_norm_avx2(data, channels, groups, affine, activation) }
+    }
+
+    fn add_activate(&self, target: &mut [f32], source: &[f32], activation: Activation) {
+        // SAFETY: `self` exists only when AVX2 and FMA were detected.
+        unsafe { elementwise::add_activate_avx2(target, source, activation) }
     }
 }

@@ -3,7 +3,8 @@
 //! every other kernel is the AVX2 one.
 
 use super::avx2::Avx2;
-use super::{avx512_f32, int8};
+use super::{avx512_f32, elementwise, int8};
+use crate::kernels::ops::Activation;
 use crate::kernels::scalar::{assert_conv_lengths, assert_conv_pixel_lengths};
 use crate::kernels::{Accumulate, ConvShape, Kernels, QuantizedRows};
 
@@ -178,5 +179,33 @@ impl Kernels for Avx512 {
     ) {
         self.avx2()
             .matvec_weight_int8(weight, row_scales, input, base, output)
+    }
+
+    fn quantize_rows(
+        &self,
+        input: &[f32],
+        row_len: usize,
+        values: &mut [i8],
+        scales: &mut [f32],
+    ) -> bool {
+        // SAFETY: `self` exists only when AVX-512 F/BW/VL were detected.
+        unsafe { elementwise::quantize_rows_avx512(input, row_len, values, scales) }
+    }
+
+    fn group_norm(
+        &self,
+        data: &mut [f32],
+        channels: usize,
+        groups: usize,
+        affine: (&[f32], &[f32]),
+        activation: Activation,
+    ) {
+        // SAFETY: `self` exists only when AVX-512 F/BW/VL were detected.
+        unsafe { elementwise::group_norm_avx512(data, channels, groups, affine, activation) }
+    }
+
+    fn add_activate(&self, target: &mut [f32], source: &[f32], activation: Activation) {
+        // SAFETY: `self` exists only when AVX-512 F/BW/VL were detected.
+        unsafe { elementwise::add_activate_avx512(target, source, activation) }
     }
 }

@@ -3,6 +3,7 @@
 pub mod avx2;
 pub mod avx512;
 pub mod avx512_f32;
+mod elementwise;
 mod f32_tile;
 mod int8;
 pub mod sequence;
