@@ -116,8 +116,13 @@ unsafe impl Lanes for Zmm {
 }
 
 /// Output pixels `out_x .. out_x + count` of row `out_y` (`count <= N`) x `2 WIDTH`
-/// channels from `channel`; where all `N` pixels are inside the input (the common case)
-/// the loop has no per-pixel test.
+/// channels from `channel`.
+///
+/// A kernel row whose taps are all inside the input for every pixel is one run of
+/// `kernel_width x in_channels` consecutive input values per pixel (channels-last), and its
+/// weights are as many consecutive rows: it is walked as one long tap, in the same tap and
+/// channel order, so the same bits. For the stem (7x7 over 3 channels) that is a loop of 21
+/// instead of seven loops of 3.
 ///
 /// # Safety
 /// The CPU supports `L`; the slices have the lengths `shape` implies; the pixels are in the
@@ -131,37 +136,70 @@ unsafe fn tile<L: Lanes, const N: usize>(
     channel: usize,
 ) -> [[L::Vector; 2]; N] {
     let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+    let kernel_width = shape.kernel_width;
     // SAFETY: the caller runs on `L`'s CPU.
     let mut sums = [[unsafe { L::zero() }; 2]; N];
     for kernel_y in 0..shape.kernel_height {
-        for kernel_x in 0..shape.kernel_width {
+        let row_taps = (kernel_y * kernel_width) * in_channels * out_channels + channel;
+        let first = tap_offsets::<N>(shape, (out_y, out_x), count, (kernel_y, 0));
+        let last = tap_offsets::<N>(shape, (out_y, out_x), count, (kernel_y, kernel_width - 1));
+        let whole_row = (0..count).all(|pixel| first[pixel].is_some() && last[pixel].is_some());
+        if whole_row {
+            let run = (row_taps, kernel_width * in_channels);
+            // SAFETY: every used pixel's run of the kernel row is inside the input; the
+            // caller's promises cover the rest.
+            unsafe { accumulate_run::<L, N>(&mut sums, (input, weight), first, run, out_channels) };
+            continue;
+        }
+        for kernel_x in 0..kernel_width {
             let offsets = tap_offsets::<N>(shape, (out_y, out_x), count, (kernel_y, kernel_x));
-            let taps =
-                (kernel_y * shape.kernel_width + kernel_x) * in_channels * out_channels + channel;
-            let inside = offsets.iter().all(Option::is_some);
-            let offsets = offsets.map(|offset| offset.unwrap_or(usize::MAX));
-            for input_channel in 0..in_channels {
-                // SAFETY: each offset other than usize::MAX is a pixel inside the input
-                // (`tap_offsets`), so `offset + input_channel` is inside it; the weight row
-                // of 2 WIDTH channels from `channel` is inside the tap's block.
-                unsafe {
-                    let row = weight.as_ptr().add(taps + input_channel * out_channels);
-                    let low = L::load(row);
-                    let high = L::load(row.add(L::WIDTH));
-                    let values = input.as_ptr().add(input_channel);
-                    for (&offset, sum) in offsets.iter().zip(sums.iter_mut()) {
-                        if !inside && offset == usize::MAX {
-                            continue;
-                        }
-                        let value = L::splat(*values.add(offset));
-                        sum[0] = L::fma(value, low, sum[0]);
-                        sum[1] = L::fma(value, high, sum[1]);
-                    }
-                }
-            }
+            let run = (
+                row_taps + kernel_x * in_channels * out_channels,
+                in_channels,
+            );
+            // SAFETY: `tap_offsets` gives pixels inside the input, or `None`.
+            unsafe {
+                accumulate_run::<L, N>(&mut sums, (input, weight), offsets, run, out_channels)
+            };
         }
     }
     sums
+}
+
+/// Adds to `sums` the products of `length` consecutive input values from each pixel's
+/// offset (pixels with `None` skipped) by as many weight rows from `first_weight`, in order.
+///
+/// # Safety
+/// The CPU supports `L`; each `Some` offset starts `length` input values; the weight rows
+/// `first_weight + i out_channels .. + 2 WIDTH` for `i < length` are inside `weight`.
+#[inline(always)]
+unsafe fn accumulate_run<L: Lanes, const N: usize>(
+    sums: &mut [[L::Vector; 2]; N],
+    (input, weight): (&[f32], &[f32]),
+    offsets: [Option<usize>; N],
+    (first_weight, length): (usize, usize),
+    out_channels: usize,
+) {
+    let inside = offsets.iter().all(Option::is_some);
+    let offsets = offsets.map(|offset| offset.unwrap_or(usize::MAX));
+    for index in 0..length {
+        // SAFETY: each offset other than usize::MAX starts `length` input values; the weight
+        // row of 2 WIDTH channels is inside `weight` (the caller's promises).
+        unsafe {
+            let row = weight.as_ptr().add(first_weight + index * out_channels);
+            let low = L::load(row);
+            let high = L::load(row.add(L::WIDTH));
+            let values = input.as_ptr().add(index);
+            for (&offset, sum) in offsets.iter().zip(sums.iter_mut()) {
+                if !inside && offset == usize::MAX {
+                    continue;
+                }
+                let value = L::splat(*values.add(offset));
+                sum[0] = L::fma(value, low, sum[0]);
+                sum[1] = L::fma(value, high, sum[1]);
+            }
+        }
+    }
 }
 
 /// Adds the bias (and the existing output with [`Accumulate::Add`]) and stores the pixels
