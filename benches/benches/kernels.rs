@@ -1,7 +1,8 @@
-//! The int8 trunk convolution alone, per layer shape of the panda trunk (320x240 frames), on
-//! every int8 backend this CPU runs: `cargo bench -p scdp-benches --bench kernels`. Criterion
-//! reports the throughput in MACs a second (elements = MACs, taps on the padding included as
-//! in `--bin macs`), to set against the peak rates of `--bench peak`.
+//! The trunk's convolutions alone, per layer shape of the panda trunk (320x240 frames), on
+//! every SIMD backend this CPU runs: int8 (`conv_int8/...`) and f32 (`conv_f32/...`, the stem
+//! and two 3x3 layers): `cargo bench -p scdp-benches --bench kernels`. Criterion reports the
+//! throughput in MACs a second (elements = MACs, taps on the padding included as in
+//! `--bin macs`), to set against the peak rates of `--bench peak`.
 
 use std::hint::black_box;
 use std::time::Duration;
@@ -83,18 +84,12 @@ fn benches(c: &mut Criterion) {
             scales: &scales,
             nonnegative: true,
         };
-        let macs = (shape.out_height()
-            * shape.out_width()
-            * shape.kernel_height
-            * shape.kernel_width
-            * shape.in_channels
-            * shape.out_channels) as u64;
         let mut group = c.benchmark_group(format!("conv_int8/{name}"));
         group
             .sample_size(20)
             .warm_up_time(Duration::from_millis(500))
             .measurement_time(Duration::from_secs(2))
-            .throughput(Throughput::Elements(macs));
+            .throughput(Throughput::Elements(macs(&shape)));
         for backend in [Backend::Avx2, Backend::Avx512] {
             let Some(kernels) = select(backend) else {
                 continue;
@@ -117,5 +112,63 @@ fn benches(c: &mut Criterion) {
     }
 }
 
-criterion_group!(kernels, benches);
+fn f32_benches(c: &mut Criterion) {
+    let mut rng = Lcg(11);
+    let mut value = move || (rng.next() % 2001) as f32 * 1e-3 - 1.0;
+    for (name, shape) in [
+        (
+            "stem 7x7/2 3-64",
+            ConvShape::square((240, 320, 3), 64, 7, 2, 3),
+        ),
+        (
+            "layer1 3x3 64",
+            ConvShape::square((60, 80, 64), 64, 3, 1, 1),
+        ),
+        (
+            "layer4 3x3 512",
+            ConvShape::square((8, 10, 512), 512, 3, 1, 1),
+        ),
+    ] {
+        let input: Vec<f32> = (0..shape.input_len()).map(|_| value()).collect();
+        let weight: Vec<f32> = (0..shape.weight_len()).map(|_| value()).collect();
+        let bias = vec![0.5f32; shape.out_channels];
+        let mut output = vec![0.0f32; shape.output_len()];
+        let mut group = c.benchmark_group(format!("conv_f32/{name}"));
+        group
+            .sample_size(20)
+            .warm_up_time(Duration::from_millis(500))
+            .measurement_time(Duration::from_secs(2))
+            .throughput(Throughput::Elements(macs(&shape)));
+        for backend in [Backend::Avx2, Backend::Avx512] {
+            let Some(kernels) = select(backend) else {
+                continue;
+            };
+            group.bench_function(kernels.name(), |b| {
+                b.iter(|| {
+                    kernels.conv(
+                        &shape,
+                        black_box(&input),
+                        &weight,
+                        &bias,
+                        &mut output,
+                        Accumulate::Overwrite,
+                    )
+                })
+            });
+        }
+        group.finish();
+    }
+}
+
+/// Multiply-accumulates of a convolution, padding taps included.
+fn macs(shape: &ConvShape) -> u64 {
+    (shape.out_height()
+        * shape.out_width()
+        * shape.kernel_height
+        * shape.kernel_width
+        * shape.in_channels
+        * shape.out_channels) as u64
+}
+
+criterion_group!(kernels, benches, f32_benches);
 criterion_main!(kernels);

@@ -1,14 +1,16 @@
 //! AVX-512 f32 convolution for 2-D maps: the shared body of [`super::f32_tile`] at twice
-//! the AVX2 width, tiles of 8 pixels x 32 channels (16 ZMM accumulators: per input channel
-//! and tap, two weight loads and eight broadcasts feed sixteen FMAs). Layers this does not
+//! the AVX2 width, tiles of 14 pixels x 32 channels (28 of the 32 ZMM registers as
+//! accumulators: per input channel and tap, two weight loads and fourteen broadcasts feed
+//! 28 FMAs, so each weight byte loaded serves 14 pixels). Layers this does not
 //! cover (out_channels not a multiple of 32, sequences) are the caller's to route
 //! elsewhere.
 
 use super::f32_tile::{self, Zmm};
 use crate::kernels::{Accumulate, ConvShape};
 
-/// Output pixels per tile (along a row) and output channels per tile.
-const PIXELS: usize = 8;
+/// Output pixels per tile and output channels per tile (14 was fastest of 8, 12 and 14 on
+/// the panda layers of `--bench kernels`).
+const PIXELS: usize = 14;
 const CHANNELS: usize = 32;
 
 /// Whether [`conv`] and [`conv_pixel`] handle `shape`.

@@ -3,9 +3,9 @@
 //! `#[target_feature]` wrapper, where `#[inline(always)]` lets the intrinsics compile with
 //! that backend's instructions.
 //!
-//! A tile is `N` consecutive output pixels of a row x two vectors of output channels. Per
-//! input channel and tap, two weight loads feed two FMAs per pixel whose tap is inside the
-//! input ([`tap_offsets`]); padding taps are skipped per pixel as the scalar reference skips
+//! A tile is `N` consecutive output positions (row-major, wrapping onto the next row) x two
+//! vectors of output channels. Per input channel and tap, two weight loads feed two FMAs per
+//! pixel whose tap is inside the input ([`tap_offsets`]); padding taps are skipped per pixel as the scalar reference skips
 //! them. Every pixel is therefore one FMA chain over its inside taps, in tap and
 //! input-channel order from zero, then the bias is added, whichever tile computes it: the
 //! single-pixel path ([`conv_pixel`]) is the one-pixel tile and gives the same bits.
@@ -115,7 +115,8 @@ unsafe impl Lanes for Zmm {
     }
 }
 
-/// Output pixels `out_x .. out_x + count` of row `out_y` (`count <= N`) x `2 WIDTH`
+/// Output positions `first .. first + count` (`count <= N`, row-major over the output map,
+/// so a tile may wrap onto the next row and small maps fill whole tiles) x `2 WIDTH`
 /// channels from `channel`.
 ///
 /// A kernel row whose taps are all inside the input for every pixel is one run of
@@ -131,28 +132,43 @@ unsafe impl Lanes for Zmm {
 unsafe fn tile<L: Lanes, const N: usize>(
     shape: &ConvShape,
     (input, weight): (&[f32], &[f32]),
-    (out_y, out_x): (usize, usize),
+    first: usize,
     count: usize,
     channel: usize,
 ) -> [[L::Vector; 2]; N] {
     let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
     let kernel_width = shape.kernel_width;
+    let out_width = shape.out_width();
+    // Stepped rather than divided per slot: two divisions per slot were a visible part of
+    // the stem's short runs.
+    let mut pixels = [(0, 0); N];
+    let (mut out_y, mut out_x) = (first / out_width, first % out_width);
+    for pixel in &mut pixels {
+        *pixel = (out_y, out_x);
+        out_x += 1;
+        if out_x == out_width {
+            (out_y, out_x) = (out_y + 1, 0);
+        }
+    }
     // SAFETY: the caller runs on `L`'s CPU.
     let mut sums = [[unsafe { L::zero() }; 2]; N];
     for kernel_y in 0..shape.kernel_height {
         let row_taps = (kernel_y * kernel_width) * in_channels * out_channels + channel;
-        let first = tap_offsets::<N>(shape, (out_y, out_x), count, (kernel_y, 0));
-        let last = tap_offsets::<N>(shape, (out_y, out_x), count, (kernel_y, kernel_width - 1));
-        let whole_row = (0..count).all(|pixel| first[pixel].is_some() && last[pixel].is_some());
+        let row_first = tap_offsets::<N>(shape, &pixels, count, (kernel_y, 0));
+        let row_last = tap_offsets::<N>(shape, &pixels, count, (kernel_y, kernel_width - 1));
+        let whole_row =
+            (0..count).all(|pixel| row_first[pixel].is_some() && row_last[pixel].is_some());
         if whole_row {
             let run = (row_taps, kernel_width * in_channels);
             // SAFETY: every used pixel's run of the kernel row is inside the input; the
             // caller's promises cover the rest.
-            unsafe { accumulate_run::<L, N>(&mut sums, (input, weight), first, run, out_channels) };
+            unsafe {
+                accumulate_run::<L, N>(&mut sums, (input, weight), row_first, run, out_channels)
+            };
             continue;
         }
         for kernel_x in 0..kernel_width {
-            let offsets = tap_offsets::<N>(shape, (out_y, out_x), count, (kernel_y, kernel_x));
+            let offsets = tap_offsets::<N>(shape, &pixels, count, (kernel_y, kernel_x));
             let run = (
                 row_taps + kernel_x * in_channels * out_channels,
                 in_channels,
@@ -234,7 +250,7 @@ unsafe fn store_tile<L: Lanes>(
     }
 }
 
-/// The whole convolution, tiles of `N` pixels along each row.
+/// The whole convolution, tiles of `N` consecutive output positions.
 ///
 /// # Safety
 /// The CPU supports `L`; the slices have the lengths `shape` implies; `out_channels` is a
@@ -246,23 +262,20 @@ pub(crate) unsafe fn conv<L: Lanes, const N: usize>(
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
-    let out_width = shape.out_width();
+    let positions = shape.out_height() * shape.out_width();
     // Channel blocks outside, pixels inside: a block's weights (up to 590 KB, ResNet layer4)
     // stay in the L2 cache while every pixel reads them, instead of the whole kernel being
     // streamed from L3 once per pixel tile.
     for channel in (0..shape.out_channels).step_by(2 * L::WIDTH) {
-        for out_y in 0..shape.out_height() {
-            for out_x in (0..out_width).step_by(N) {
-                let count = (out_width - out_x).min(N);
-                let first_pixel = out_y * out_width + out_x;
-                // SAFETY: the caller vouches for the CPU and the lengths; the pixels are in
-                // the row and the channel block inside `out_channels`.
-                unsafe {
-                    let sums = tile::<L, N>(shape, (input, weight), (out_y, out_x), count, channel);
-                    let at = (first_pixel, channel);
-                    let out = (bias, &mut *output);
-                    store_tile::<L>(&sums[..count], out, shape.out_channels, at, accumulate);
-                }
+        for first in (0..positions).step_by(N) {
+            let count = (positions - first).min(N);
+            // SAFETY: the caller vouches for the CPU and the lengths; the pixels are in the
+            // output and the channel block inside `out_channels`.
+            unsafe {
+                let sums = tile::<L, N>(shape, (input, weight), first, count, channel);
+                let at = (first, channel);
+                let out = (bias, &mut *output);
+                store_tile::<L>(&sums[..count], out, shape.out_channels, at, accumulate);
             }
         }
     }
@@ -282,7 +295,8 @@ pub(crate) unsafe fn conv_pixel<L: Lanes>(
     for channel in (0..shape.out_channels).step_by(2 * L::WIDTH) {
         // SAFETY: as in `conv`; `output` is the pixel's channels, so pixel 0 is inside it.
         unsafe {
-            let sums = tile::<L, 1>(shape, (input, weight), pixel, 1, channel);
+            let position = pixel.0 * shape.out_width() + pixel.1;
+            let sums = tile::<L, 1>(shape, (input, weight), position, 1, channel);
             let out = (bias, &mut *output);
             store_tile::<L>(
                 &sums,

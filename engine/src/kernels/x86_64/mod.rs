@@ -12,30 +12,28 @@ use core::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
 
 use crate::kernels::ConvShape;
 
-/// Where each pixel of the tile `out_x .. out_x + count` of row `out_y` (`N` slots, the
-/// last ones unused when `count < N`) reads kernel tap `(kernel_y, kernel_x)`: the input
-/// offset of its first channel, or `None` when the tap lies in the padding or the slot is
-/// unused. The f32 kernels skip those taps exactly as the scalar reference does, so every
-/// output pixel is one FMA chain over its inside taps, in tap and input-channel order,
+/// Where each pixel of a tile reads kernel tap `(kernel_y, kernel_x)`: `pixels` are the
+/// output positions `(out_y, out_x)` of its `N` slots, the first `count` used. The input
+/// offset of the pixel's first channel, or `None` when the tap lies in the padding or the
+/// slot is unused. The f32 kernels skip those taps exactly as the scalar reference does, so
+/// every output pixel is one FMA chain over its inside taps, in tap and input-channel order,
 /// whichever tile (or single-pixel call) computes it.
 #[inline(always)]
 pub(crate) fn tap_offsets<const N: usize>(
     shape: &ConvShape,
-    (out_y, out_x): (usize, usize),
+    pixels: &[(usize, usize); N],
     count: usize,
     (kernel_y, kernel_x): (usize, usize),
 ) -> [Option<usize>; N] {
-    let mut offsets = [None; N];
-    let in_y = (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height);
-    let Some(in_y) = in_y.filter(|&y| y < shape.in_height) else {
-        return offsets;
-    };
     // A plain loop: `array::from_fn` was not inlined here and cost a tenth of the stem.
-    for (pixel, offset) in offsets.iter_mut().enumerate().take(count) {
-        let in_x = ((out_x + pixel) * shape.stride + kernel_x).checked_sub(shape.padding_width);
-        *offset = in_x
-            .filter(|&x| x < shape.in_width)
-            .map(|x| (in_y * shape.in_width + x) * shape.in_channels);
+    let mut offsets = [None; N];
+    for (offset, &(out_y, out_x)) in offsets.iter_mut().zip(pixels).take(count) {
+        let in_y = (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height);
+        let in_x = (out_x * shape.stride + kernel_x).checked_sub(shape.padding_width);
+        *offset = in_y
+            .filter(|&y| y < shape.in_height)
+            .zip(in_x.filter(|&x| x < shape.in_width))
+            .map(|(y, x)| (y * shape.in_width + x) * shape.in_channels);
     }
     offsets
 }
