@@ -1119,3 +1119,18 @@ fn single_pixel_convolution_equals_the_dense_kernel_bit_for_bit() {
         }
     }
 }
+
+/// A matrix-vector product over an input of no values is the base, on every backend, for
+/// f32 and int8 weights (rows of zero columns; `chunks_exact(0)` would panic).
+#[test]
+fn matrix_vector_product_of_an_empty_input_is_the_base() {
+    let base = [1.5f32, -2.0, 0.25];
+    for (name, kernels) in backends() {
+        let mut output = [f32::NAN; 3];
+        kernels.matvec(&[], &[], &base, &mut output);
+        assert_eq!(output, base, "{name} f32");
+        let mut output = [f32::NAN; 3];
+        kernels.matvec_weight_int8(&[], &[0.5; 3], &[], &base, &mut output);
+        assert_eq!(output, base, "{name} int8");
+    }
+}

@@ -306,6 +306,10 @@ impl Kernels for Scalar {
     fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
         assert_eq!(weight.len(), output.len() * input.len());
         assert_eq!(base.len(), output.len());
+        if input.is_empty() {
+            // Rows of no columns (which `chunks_exact` cannot cut): the sums are empty.
+            return output.copy_from_slice(base);
+        }
         for ((out, row), &start) in output
             .iter_mut()
             .zip(weight.chunks_exact(input.len()))
@@ -397,6 +401,10 @@ impl Kernels for Scalar {
         assert_eq!(weight.len(), output.len() * input.len());
         assert_eq!(row_scales.len(), output.len());
         assert_eq!(base.len(), output.len());
+        if input.is_empty() {
+            // As in `matvec`.
+            return output.copy_from_slice(base);
+        }
         for (((out, row), &scale), &start) in output
             .iter_mut()
             .zip(weight.chunks_exact(input.len()))
