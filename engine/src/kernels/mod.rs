@@ -315,8 +315,9 @@ pub trait Kernels: Sync {
     );
 
     /// [`conv`](Self::conv) with int8 weights and f32 activations (weight-only quantization):
-    /// `acc[o] = sum x * (q_w as f32)` in f32, then `output[o] (+)= acc[o] * weight_scales[o]
-    /// + bias[o]`. For memory-bound layers, where int8 activations would only add error.
+    /// `acc[o] = sum x * (q_w as f32)` in f32, then
+    /// `output[o] (+)= acc[o] * weight_scales[o] + bias[o]`. For memory-bound layers, where
+    /// int8 activations would only add error.
     #[allow(clippy::too_many_arguments)]
     fn conv_weight_int8(
         &self,

@@ -1,5 +1,5 @@
 //! AVX-512 kernels: the int8 convolution with VNNI's `vpdpbusd` (the shared body of
-//! [`super::int8`] on ZMM vectors) and the f32 2-D convolution of [`super::avx512_f32`];
+//! `int8` on ZMM vectors) and the f32 2-D convolution of [`super::avx512_f32`];
 //! every other kernel is the AVX2 one.
 
 use super::avx2::Avx2;

@@ -1,4 +1,4 @@
-//! AVX-512 f32 convolution for 2-D maps: the shared body of [`super::f32_tile`] at twice
+//! AVX-512 f32 convolution for 2-D maps: the shared body of `f32_tile` at twice
 //! the AVX2 width, tiles of 14 pixels x 32 channels (28 of the 32 ZMM registers as
 //! accumulators: per input channel and tap, two weight loads and fourteen broadcasts feed
 //! 28 FMAs, so each weight byte loaded serves 14 pixels). Layers this does not
