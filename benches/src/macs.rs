@@ -12,7 +12,7 @@
 //! What the engine computes differs from the PyTorch module in one place: the FiLM layers'
 //! time-embedding half (and the step encoder before it) depends only on the step, so the
 //! weights tool precomputes it per step (`film.table`); per step only the `[2 out, g]` part
-//! runs. [`Layer::Film`] counts that part; [`torch_only_per_step`] the rest.
+//! runs. [`Stage::Film`] counts that part; [`torch_only_per_step`] the rest.
 
 use scdp_engine::ModelConfig;
 use scdp_engine::config::{PYRAMID_LEVELS, UNET_LEVELS};
