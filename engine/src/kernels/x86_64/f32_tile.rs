@@ -119,10 +119,10 @@ unsafe impl Lanes for Zmm {
 /// so a tile may wrap onto the next row and small maps fill whole tiles) x `2 WIDTH`
 /// channels from `channel`.
 ///
-/// A kernel row whose taps are all inside the input for every pixel is one run of
-/// `kernel_width x in_channels` consecutive input values per pixel (channels-last), and its
-/// weights are as many consecutive rows: it is walked as one long tap, in the same tap and
-/// channel order, so the same bits. For the stem (7x7 over 3 channels) that is a loop of 21
+/// A kernel row whose taps are all inside the input for every pixel (or, for some, all in
+/// the vertical padding) is one run of `kernel_width x in_channels` consecutive input values
+/// per pixel (channels-last), and its weights are as many consecutive rows: it is walked as
+/// one long tap, in the same tap and channel order, so the same bits. For the stem (7x7 over 3 channels) that is a loop of 21
 /// instead of seven loops of 3.
 ///
 /// # Safety
@@ -154,11 +154,7 @@ unsafe fn tile<L: Lanes, const N: usize>(
     let mut sums = [[unsafe { L::zero() }; 2]; N];
     for kernel_y in 0..shape.kernel_height {
         let row_taps = (kernel_y * kernel_width) * in_channels * out_channels + channel;
-        let row_first = tap_offsets::<N>(shape, &pixels, count, (kernel_y, 0));
-        let row_last = tap_offsets::<N>(shape, &pixels, count, (kernel_y, kernel_width - 1));
-        let whole_row =
-            (0..count).all(|pixel| row_first[pixel].is_some() && row_last[pixel].is_some());
-        if whole_row {
+        if let Some(row_first) = whole_rows::<N>(shape, &pixels, count, kernel_y) {
             let run = (row_taps, kernel_width * in_channels);
             // SAFETY: every used pixel's run of the kernel row is inside the input; the
             // caller's promises cover the rest.
@@ -180,6 +176,32 @@ unsafe fn tile<L: Lanes, const N: usize>(
         }
     }
     sums
+}
+
+/// Where each pixel's run of kernel row `kernel_y` starts, if every used pixel either has
+/// the whole row inside the input or has it entirely in the vertical padding (`None`: it
+/// skips every tap of the row, as the reference does); `None` if some pixel has only part
+/// of the row inside, which then goes tap by tap.
+#[inline(always)]
+fn whole_rows<const N: usize>(
+    shape: &ConvShape,
+    pixels: &[(usize, usize); N],
+    count: usize,
+    kernel_y: usize,
+) -> Option<[Option<usize>; N]> {
+    let mut offsets = [None; N];
+    for (offset, &(out_y, out_x)) in offsets.iter_mut().zip(pixels).take(count) {
+        let in_y = (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height);
+        let Some(in_y) = in_y.filter(|&y| y < shape.in_height) else {
+            continue;
+        };
+        let in_x = (out_x * shape.stride).checked_sub(shape.padding_width)?;
+        if in_x + shape.kernel_width > shape.in_width {
+            return None;
+        }
+        *offset = Some((in_y * shape.in_width + in_x) * shape.in_channels);
+    }
+    Some(offsets)
 }
 
 /// Adds to `sums` the products of `length` consecutive input values from each pixel's
