@@ -306,8 +306,19 @@ fn upsample_matches_conv_transpose(backend: &str, kernels: &dyn Kernels) {
 fn matvec_adds_base() {
     let mut rng = Lcg(3);
     for (name, kernels) in backends() {
-        // Odd lengths reach the SIMD kernels' 32-, 8- and 1-wide parts.
-        for (rows, cols) in [(13, 29), (1, 1), (5, 8), (3, 33), (7, 71), (40, 784)] {
+        // Odd lengths reach the SIMD kernels' 4-vector, 1-vector and 1-wide parts (32 / 8
+        // on AVX2, 64 / 16 on AVX-512).
+        for (rows, cols) in [
+            (13, 29),
+            (1, 1),
+            (5, 8),
+            (3, 33),
+            (7, 71),
+            (2, 64),
+            (3, 80),
+            (4, 17),
+            (40, 784),
+        ] {
             let weight = rng.vec(rows * cols);
             let input = rng.vec(cols);
             let base = rng.vec(rows);
@@ -593,7 +604,7 @@ fn weight_only_int8_matches_dequantized(backend: &str, kernels: &dyn Kernels) {
 
 /// The U-Net's sequence shapes and their awkward cousins, on every backend against the
 /// textbook convolution: lengths around the 4-position tiles, channel counts that leave
-/// 8-wide and scalar tails, the k3 s2 p1 downsampling, and int8 weight-only against the
+/// one-vector (8 or 16 wide) and scalar tails, the k3 s2 p1 downsampling, and int8 weight-only against the
 /// same textbook convolution of the dequantized weights.
 #[test]
 fn sequence_convolutions_match_pytorch_definition() {
@@ -605,7 +616,7 @@ fn sequence_convolutions_match_pytorch_definition() {
                 continue;
             }
             let in_channels = 1 + rng.below(70);
-            let out_channels = [1, 7, 8, 13, 16, 24, 31, 40, 129][rng.below(9)];
+            let out_channels = [1, 7, 8, 13, 16, 24, 31, 40, 48, 64, 129][rng.below(11)];
             shapes.push(ConvShape::sequence(
                 length,
                 in_channels,

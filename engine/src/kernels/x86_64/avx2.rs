@@ -4,7 +4,8 @@
 //! shared body of `int8` on YMM vectors. The U-Net's 1-D convolutions, upsampling and
 //! matrix-vector products use the weight-streaming [`sequence`] kernels.
 
-use super::f32_tile::{self, Ymm};
+use super::f32_tile;
+use super::lanes::Ymm;
 use super::sequence::{self, Sequence};
 use super::{elementwise, int8};
 use crate::kernels::ops::Activation;
@@ -29,20 +30,6 @@ impl Avx2 {
     pub fn detect() -> Option<&'static Avx2> {
         super::has_avx2_fma().then_some(&INSTANCE)
     }
-}
-
-/// The 1-D convolution `shape` describes (one input row, one kernel row, no vertical
-/// padding), for the sequence kernels.
-fn as_sequence(shape: &ConvShape) -> Option<Sequence> {
-    (shape.in_height == 1 && shape.kernel_height == 1 && shape.padding_height == 0).then(|| {
-        Sequence::convolution(
-            shape.in_width,
-            (shape.in_channels, shape.out_channels),
-            shape.kernel_width,
-            shape.stride,
-            shape.padding_width,
-        )
-    })
 }
 
 /// The shared f32 body ([`f32_tile`]) compiled for AVX2 + FMA.
@@ -90,13 +77,13 @@ impl Kernels for Avx2 {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        assert_conv_lengths(shape, (input, weight, bias), output.len());
-        if let Some(sequence) = as_sequence(shape) {
-            // SAFETY: `self` exists only when AVX2 and FMA were detected.
-            return unsafe {
-                sequence::convolve_f32(&sequence, input, weight, bias, output, accumulate)
-            };
+        // SAFETY: `self` exists only when AVX2 and FMA were detected.
+        if unsafe { sequence::avx2::conv(shape, (input, weight, bias), output, accumulate) }
+            .is_some()
+        {
+            return;
         }
+        assert_conv_lengths(shape, (input, weight, bias), output.len());
         // Narrow layers (the tiny model's trunk) are not worth a tail path.
         if !shape.out_channels.is_multiple_of(CHANNELS) {
             return Scalar.conv(shape, input, weight, bias, output, accumulate);
@@ -117,7 +104,7 @@ impl Kernels for Avx2 {
     ) {
         assert_conv_pixel_lengths(shape, (input, weight, bias), (out_y, out_x), output.len());
         // The paths `conv` takes for this pixel.
-        if as_sequence(shape).is_some() || !shape.out_channels.is_multiple_of(CHANNELS) {
+        if Sequence::from_shape(shape).is_some() || !shape.out_channels.is_multiple_of(CHANNELS) {
             return Scalar.conv_pixel(shape, input, weight, bias, (out_y, out_x), output);
         }
         // SAFETY: as in `conv`; the pixel is in the output (asserted) and `output` holds
@@ -135,21 +122,23 @@ impl Kernels for Avx2 {
         bias: &[f32],
         output: &mut [f32],
     ) {
-        assert_eq!(input.len(), length * in_channels);
-        assert_eq!(weight.len(), 4 * in_channels * out_channels);
-        assert_eq!(output.len(), 2 * length * out_channels);
-        for parity in 0..2 {
-            let half = Sequence::upsample_half(length, in_channels, out_channels, parity);
-            // SAFETY: `self` exists only when AVX2 and FMA were detected.
-            unsafe {
-                sequence::convolve_f32(&half, input, weight, bias, output, Accumulate::Overwrite)
-            };
+        // SAFETY: `self` exists only when AVX2 and FMA were detected.
+        unsafe {
+            sequence::avx2::upsample_conv(
+                length,
+                in_channels,
+                out_channels,
+                input,
+                weight,
+                bias,
+                output,
+            )
         }
     }
 
     fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
         // SAFETY: `self` exists only when AVX2 and FMA were detected.
-        unsafe { sequence::matvec(weight, None, input, base, output) }
+        unsafe { sequence::avx2::matvec(weight, None, input, base, output) }
     }
 
     fn conv_int8(
@@ -210,31 +199,9 @@ impl Kernels for Avx2 {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        assert_conv_lengths(shape, (input, weight, bias), output.len());
-        assert_eq!(weight_scales.len(), shape.out_channels);
-        match as_sequence(shape) {
-            // SAFETY: `self` exists only when AVX2 and FMA were detected.
-            Some(sequence) => unsafe {
-                sequence::convolve(
-                    &sequence,
-                    input,
-                    weight,
-                    Some(weight_scales),
-                    bias,
-                    output,
-                    accumulate,
-                )
-            },
-            None => Scalar.conv_weight_int8(
-                shape,
-                input,
-                weight,
-                weight_scales,
-                bias,
-                output,
-                accumulate,
-            ),
-        }
+        let parameters = (weight, weight_scales, bias);
+        // SAFETY: `self` exists only when AVX2 and FMA were detected.
+        unsafe { sequence::avx2::conv_weight_int8(shape, input, parameters, output, accumulate) }
     }
 
     fn matvec_weight_int8(
@@ -246,7 +213,7 @@ impl Kernels for Avx2 {
         output: &mut [f32],
     ) {
         // SAFETY: `self` exists only when AVX2 and FMA were detected.
-        unsafe { sequence::matvec(weight, Some(row_scales), input, base, output) }
+        unsafe { sequence::avx2::matvec(weight, Some(row_scales), input, base, output) }
     }
 
     fn quantize_rows(

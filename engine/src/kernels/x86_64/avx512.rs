@@ -1,9 +1,9 @@
 //! AVX-512 kernels: the int8 convolution with VNNI's `vpdpbusd` (the shared body of
-//! `int8` on ZMM vectors) and the f32 2-D convolution of [`super::avx512_f32`];
-//! every other kernel is the AVX2 one.
+//! `int8` on ZMM vectors), the f32 2-D convolution of [`super::avx512_f32`] and the U-Net's
+//! `sequence` kernels, all on ZMM vectors; the AVX2 ones where those do not apply.
 
 use super::avx2::Avx2;
-use super::{avx512_f32, elementwise, int8};
+use super::{avx512_f32, elementwise, int8, sequence};
 use crate::kernels::ops::Activation;
 use crate::kernels::scalar::{assert_conv_lengths, assert_conv_pixel_lengths};
 use crate::kernels::{Accumulate, ConvShape, Kernels, QuantizedRows};
@@ -45,6 +45,12 @@ impl Kernels for Avx512 {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
+        // SAFETY: `self` exists only when AVX-512 F/BW/VL were detected.
+        if unsafe { sequence::avx512::conv(shape, (input, weight, bias), output, accumulate) }
+            .is_some()
+        {
+            return;
+        }
         if !avx512_f32::covers(shape) {
             return self
                 .avx2()
@@ -85,19 +91,23 @@ impl Kernels for Avx512 {
         bias: &[f32],
         output: &mut [f32],
     ) {
-        self.avx2().upsample_conv(
-            length,
-            in_channels,
-            out_channels,
-            input,
-            weight,
-            bias,
-            output,
-        )
+        // SAFETY: `self` exists only when AVX-512 F/BW/VL were detected.
+        unsafe {
+            sequence::avx512::upsample_conv(
+                length,
+                in_channels,
+                out_channels,
+                input,
+                weight,
+                bias,
+                output,
+            )
+        }
     }
 
     fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
-        self.avx2().matvec(weight, input, base, output)
+        // SAFETY: `self` exists only when AVX-512 F/BW/VL were detected.
+        unsafe { sequence::avx512::matvec(weight, None, input, base, output) }
     }
 
     fn conv_int8(
@@ -158,15 +168,9 @@ impl Kernels for Avx512 {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        self.avx2().conv_weight_int8(
-            shape,
-            input,
-            weight,
-            weight_scales,
-            bias,
-            output,
-            accumulate,
-        )
+        let parameters = (weight, weight_scales, bias);
+        // SAFETY: `self` exists only when AVX-512 F/BW/VL were detected.
+        unsafe { sequence::avx512::conv_weight_int8(shape, input, parameters, output, accumulate) }
     }
 
     fn matvec_weight_int8(
@@ -177,8 +181,8 @@ impl Kernels for Avx512 {
         base: &[f32],
         output: &mut [f32],
     ) {
-        self.avx2()
-            .matvec_weight_int8(weight, row_scales, input, base, output)
+        // SAFETY: `self` exists only when AVX-512 F/BW/VL were detected.
+        unsafe { sequence::avx512::matvec(weight, Some(row_scales), input, base, output) }
     }
 
     fn quantize_rows(

@@ -5,7 +5,8 @@
 //! cover (out_channels not a multiple of 32, sequences) are the caller's to route
 //! elsewhere.
 
-use super::f32_tile::{self, Zmm};
+use super::f32_tile;
+use super::lanes::Zmm;
 use crate::kernels::{Accumulate, ConvShape};
 
 /// Output pixels per tile and output channels per tile (14 was fastest of 8, 12 and 14 on

@@ -1,5 +1,5 @@
 //! The f32 2-D convolution both x86-64 backends run: one generic body over a vector width
-//! ([`Lanes`]: YMM for AVX2, ZMM for AVX-512), instantiated inside each backend's thin
+//! ([`Lanes`]: YMM for AVX2, ZMM for AVX-512, as the U-Net kernels of `sequence` are), instantiated inside each backend's thin
 //! `#[target_feature]` wrapper, where `#[inline(always)]` lets the intrinsics compile with
 //! that backend's instructions.
 //!
@@ -10,110 +10,10 @@
 //! input-channel order from zero, then the bias is added, whichever tile computes it: the
 //! single-pixel path ([`conv_pixel`]) is the one-pixel tile and gives the same bits.
 
-use core::arch::x86_64::{
-    __m256, __m512, _mm256_add_ps, _mm256_fmadd_ps, _mm256_loadu_ps, _mm256_set1_ps,
-    _mm256_setzero_ps, _mm256_storeu_ps, _mm512_add_ps, _mm512_fmadd_ps, _mm512_loadu_ps,
-    _mm512_set1_ps, _mm512_setzero_ps, _mm512_storeu_ps,
-};
+use super::lanes::Lanes;
 
 use super::tap_offsets;
 use crate::kernels::{Accumulate, ConvShape};
-
-/// A vector of f32 lanes and the operations the tile needs.
-///
-/// # Safety
-/// Every method requires the CPU to support the vector's instructions (AVX2 + FMA for
-/// [`Ymm`], AVX-512F for [`Zmm`]); pointers must cover `WIDTH` floats.
-pub(crate) unsafe trait Lanes {
-    type Vector: Copy;
-    const WIDTH: usize;
-    unsafe fn zero() -> Self::Vector;
-    unsafe fn load(from: *const f32) -> Self::Vector;
-    unsafe fn store(to: *mut f32, value: Self::Vector);
-    unsafe fn splat(value: f32) -> Self::Vector;
-    /// `a * b + c`, one rounding.
-    unsafe fn fma(a: Self::Vector, b: Self::Vector, c: Self::Vector) -> Self::Vector;
-    unsafe fn add(a: Self::Vector, b: Self::Vector) -> Self::Vector;
-}
-
-/// Eight lanes (AVX2 + FMA).
-pub(crate) struct Ymm;
-
-/// Sixteen lanes (AVX-512F).
-pub(crate) struct Zmm;
-
-// SAFETY: each method is the one intrinsic of its name; the trait's contract passes the
-// CPU requirement on to the caller.
-unsafe impl Lanes for Ymm {
-    type Vector = __m256;
-    const WIDTH: usize = 8;
-    #[inline(always)]
-    unsafe fn zero() -> __m256 {
-        // SAFETY: the caller runs on AVX2 (trait contract).
-        unsafe { _mm256_setzero_ps() }
-    }
-    #[inline(always)]
-    unsafe fn load(from: *const f32) -> __m256 {
-        // SAFETY: the caller runs on AVX2 and `from` covers 8 floats (trait contract).
-        unsafe { _mm256_loadu_ps(from) }
-    }
-    #[inline(always)]
-    unsafe fn store(to: *mut f32, value: __m256) {
-        // SAFETY: the caller runs on AVX2 and `to` covers 8 floats (trait contract).
-        unsafe { _mm256_storeu_ps(to, value) }
-    }
-    #[inline(always)]
-    unsafe fn splat(value: f32) -> __m256 {
-        // SAFETY: the caller runs on AVX2 (trait contract).
-        unsafe { _mm256_set1_ps(value) }
-    }
-    #[inline(always)]
-    unsafe fn fma(a: __m256, b: __m256, c: __m256) -> __m256 {
-        // SAFETY: the caller runs on AVX2 + FMA (trait contract).
-        unsafe { _mm256_fmadd_ps(a, b, c) }
-    }
-    #[inline(always)]
-    unsafe fn add(a: __m256, b: __m256) -> __m256 {
-        // SAFETY: the caller runs on AVX2 (trait contract).
-        unsafe { _mm256_add_ps(a, b) }
-    }
-}
-
-// SAFETY: as for `Ymm`, with AVX-512F.
-unsafe impl Lanes for Zmm {
-    type Vector = __m512;
-    const WIDTH: usize = 16;
-    #[inline(always)]
-    unsafe fn zero() -> __m512 {
-        // SAFETY: the caller runs on AVX-512F (trait contract).
-        unsafe { _mm512_setzero_ps() }
-    }
-    #[inline(always)]
-    unsafe fn load(from: *const f32) -> __m512 {
-        // SAFETY: the caller runs on AVX-512F and `from` covers 16 floats (trait contract).
-        unsafe { _mm512_loadu_ps(from) }
-    }
-    #[inline(always)]
-    unsafe fn store(to: *mut f32, value: __m512) {
-        // SAFETY: the caller runs on AVX-512F and `to` covers 16 floats (trait contract).
-        unsafe { _mm512_storeu_ps(to, value) }
-    }
-    #[inline(always)]
-    unsafe fn splat(value: f32) -> __m512 {
-        // SAFETY: the caller runs on AVX-512F (trait contract).
-        unsafe { _mm512_set1_ps(value) }
-    }
-    #[inline(always)]
-    unsafe fn fma(a: __m512, b: __m512, c: __m512) -> __m512 {
-        // SAFETY: the caller runs on AVX-512F (trait contract).
-        unsafe { _mm512_fmadd_ps(a, b, c) }
-    }
-    #[inline(always)]
-    unsafe fn add(a: __m512, b: __m512) -> __m512 {
-        // SAFETY: the caller runs on AVX-512F (trait contract).
-        unsafe { _mm512_add_ps(a, b) }
-    }
-}
 
 /// Output positions `first .. first + count` (`count <= N`, row-major over the output map,
 /// so a tile may wrap onto the next row and small maps fill whole tiles) x `2 WIDTH`

@@ -6,7 +6,8 @@ pub mod avx512_f32;
 mod elementwise;
 mod f32_tile;
 mod int8;
-pub mod sequence;
+mod lanes;
+pub(crate) mod sequence;
 
 use core::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
 

@@ -1,44 +1,40 @@
-//! AVX2 + FMA kernels for the conditional U-Net: 1-D convolutions over short sequences
-//! (`[T, C]`, T = 16, 8 or 4), its transposed upsampling convolution, and the FiLM
-//! matrix-vector products. Their ~15.6 M weights are read at every denoising step, so these
-//! kernels are memory-bound and read each weight once per call where they can:
-//! - int8 weights (15.6 MB, which the L3 cache can hold): a register tile of 4 positions x 16
-//!   channels; each weight row of the tile is widened once (`vpmovsxbd` + `vcvtdq2ps`) and fed
-//!   to all four positions, the per-channel scale applied once at the end;
+//! Kernels for the conditional U-Net, over a vector width ([`Lanes`]: YMM for AVX2, ZMM for
+//! AVX-512; one generic body, instantiated in the thin `#[target_feature]` wrappers at the
+//! end): 1-D convolutions over short sequences (`[T, C]`, T = 16, 8 or 4), its transposed
+//! upsampling convolution, and the FiLM matrix-vector products. Their ~15.6 M weights are
+//! read at every denoising step, so these kernels read each weight once per call where they
+//! can:
+//! - int8 weights (15.6 MB, which the L3 cache can hold): a register tile of 4 positions x 2
+//!   vectors of channels; each weight row of the tile is widened once (`vpmovsxbd` +
+//!   `vcvtdq2ps`) and fed to all four positions, the per-channel scale applied once at the
+//!   end;
 //! - f32 weights (62 MB, from DRAM at every step): on sequences of up to 8 positions, each
 //!   weight row is streamed in memory order and applied to every position; longer sequences
 //!   use the register tile.
 
-use core::arch::x86_64::{
-    __m128i, __m256, _mm_add_ps, _mm_add_ss, _mm_cvtss_f32, _mm_loadl_epi64, _mm_movehl_ps,
-    _mm_shuffle_ps, _mm256_add_ps, _mm256_broadcast_ss, _mm256_castps256_ps128,
-    _mm256_cvtepi8_epi32, _mm256_cvtepi32_ps, _mm256_extractf128_ps, _mm256_fmadd_ps,
-    _mm256_loadu_ps, _mm256_set1_ps, _mm256_setzero_ps, _mm256_storeu_ps,
-};
+use super::lanes::{Lanes, Ymm, Zmm};
+use crate::kernels::{Accumulate, ConvShape};
 
-use crate::kernels::Accumulate;
-
-/// Output positions per register tile: 4 positions x 16 channels are eight accumulators,
-/// leaving registers for the two weight vectors and the broadcast input.
+/// Output positions per register tile: 4 positions x 2 vectors are eight accumulators,
+/// leaving registers for the two weight vectors and the broadcast input (AVX2 has 16).
 const POSITIONS: usize = 4;
 
 /// A weight element type: f32, or int8 widened to f32 on load.
-pub trait WeightLane: Copy {
-    /// Eight consecutive weights as f32 lanes.
+pub(crate) trait WeightLane: Copy {
+    /// `L::WIDTH` consecutive weights as f32 lanes.
     ///
     /// # Safety
-    /// The CPU supports AVX2; eight elements from `source` are readable.
-    unsafe fn load8(source: *const Self) -> __m256;
+    /// The CPU supports `L`; `L::WIDTH` elements from `source` are readable.
+    unsafe fn load<L: Lanes>(source: *const Self) -> L::Vector;
 
     fn to_f32(self) -> f32;
 }
 
 impl WeightLane for f32 {
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    unsafe fn load8(source: *const f32) -> __m256 {
-        // SAFETY: the caller guarantees eight readable floats.
-        unsafe { _mm256_loadu_ps(source) }
+    #[inline(always)]
+    unsafe fn load<L: Lanes>(source: *const f32) -> L::Vector {
+        // SAFETY: the caller's promises are `L::load`'s.
+        unsafe { L::load(source) }
     }
 
     fn to_f32(self) -> f32 {
@@ -47,15 +43,10 @@ impl WeightLane for f32 {
 }
 
 impl WeightLane for i8 {
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    unsafe fn load8(source: *const i8) -> __m256 {
-        // SAFETY: the caller guarantees eight readable bytes, which is all `loadl` reads.
-        unsafe {
-            _mm256_cvtepi32_ps(_mm256_cvtepi8_epi32(_mm_loadl_epi64(
-                source.cast::<__m128i>(),
-            )))
-        }
+    #[inline(always)]
+    unsafe fn load<L: Lanes>(source: *const i8) -> L::Vector {
+        // SAFETY: the caller's promises are `L::widen_int8`'s.
+        unsafe { L::widen_int8(source) }
     }
 
     fn to_f32(self) -> f32 {
@@ -70,7 +61,7 @@ impl WeightLane for i8 {
 /// A convolution has `first_tap = 0, tap_step = 1, first_offset = -padding, offset_step = 1`;
 /// the even and odd outputs of the stride-2 transposed convolution are two such sequences.
 #[derive(Clone, Copy, Debug)]
-pub struct Sequence {
+pub(crate) struct Sequence {
     pub in_length: usize,
     pub in_channels: usize,
     pub out_channels: usize,
@@ -86,6 +77,20 @@ pub struct Sequence {
 }
 
 impl Sequence {
+    /// The 1-D convolution `shape` describes, if it is one (one input row, one kernel row,
+    /// no vertical padding).
+    pub(crate) fn from_shape(shape: &ConvShape) -> Option<Sequence> {
+        (shape.in_height == 1 && shape.kernel_height == 1 && shape.padding_height == 0).then(|| {
+            Sequence::convolution(
+                shape.in_width,
+                (shape.in_channels, shape.out_channels),
+                shape.kernel_width,
+                shape.stride,
+                shape.padding_width,
+            )
+        })
+    }
+
     /// A convolution with kernel `taps`, `stride` and zero `padding`.
     pub fn convolution(
         in_length: usize,
@@ -178,17 +183,17 @@ impl Sequence {
 }
 
 /// Per-channel factors applied to the sums before the bias: the int8 weight scales.
-pub type Scales<'a> = Option<&'a [f32]>;
+pub(crate) type Scales<'a> = Option<&'a [f32]>;
 
 /// Runs `sequence`: `output[row, o] (+)= sum * scales[o] + bias[o]`.
 ///
 /// # Safety
-/// The CPU supports AVX2 and FMA.
+/// The CPU supports `L`.
 ///
 /// # Panics
 /// If a slice is shorter than `sequence` needs (the model code never passes such slices).
-#[target_feature(enable = "avx2,fma")]
-pub unsafe fn convolve<W: WeightLane>(
+#[inline(always)]
+unsafe fn convolve<L: Lanes, W: WeightLane>(
     sequence: &Sequence,
     input: &[f32],
     weight: &[W],
@@ -208,7 +213,7 @@ pub unsafe fn convolve<W: WeightLane>(
     if out_channels == 0 {
         return;
     }
-    let vector_channels = out_channels - out_channels % 8;
+    let vector_channels = out_channels - out_channels % L::WIDTH;
     // The output holds the running sums: bias first, then one scaled partial sum per chunk.
     for position in 0..sequence.positions {
         let row = sequence.out_first + position * sequence.out_step;
@@ -220,20 +225,20 @@ pub unsafe fn convolve<W: WeightLane>(
     }
     for first in (0..sequence.positions).step_by(POSITIONS) {
         let mut channel = 0;
-        while channel + 16 <= vector_channels {
-            // SAFETY: AVX2 and FMA are enabled here; the asserts above bound every row the
-            // tile reads or writes; `channel + 16 <= out_channels`.
+        while channel + 2 * L::WIDTH <= vector_channels {
+            // SAFETY: the caller runs on `L`'s CPU; the asserts above bound every row the
+            // tile reads or writes; `channel + 2 WIDTH <= out_channels`.
             unsafe {
-                let sums = tile::<W, 2>(sequence, input, weight, first, channel);
-                add_scaled(sequence, &sums, first, channel, scales, output);
+                let sums = tile::<L, W, 2>(sequence, input, weight, first, channel);
+                add_scaled::<L, 2>(sequence, &sums, first, channel, scales, output);
             }
-            channel += 16;
+            channel += 2 * L::WIDTH;
         }
         if channel < vector_channels {
-            // SAFETY: as above, with `channel + 8 == vector_channels <= out_channels`.
+            // SAFETY: as above, with `channel + WIDTH == vector_channels <= out_channels`.
             unsafe {
-                let sums = tile::<W, 1>(sequence, input, weight, first, channel);
-                add_scaled(sequence, &sums, first, channel, scales, output);
+                let sums = tile::<L, W, 1>(sequence, input, weight, first, channel);
+                add_scaled::<L, 1>(sequence, &sums, first, channel, scales, output);
             }
         }
     }
@@ -257,12 +262,12 @@ const STREAMING_POSITIONS: usize = 8;
 /// [`convolve`] with f32 weights, by whichever loop is faster for the sequence length.
 ///
 /// # Safety
-/// The CPU supports AVX2 and FMA.
+/// The CPU supports `L`.
 ///
 /// # Panics
 /// If a slice is shorter than `sequence` needs (the model code never passes such slices).
-#[target_feature(enable = "avx2,fma")]
-pub unsafe fn convolve_f32(
+#[inline(always)]
+unsafe fn convolve_f32<L: Lanes>(
     sequence: &Sequence,
     input: &[f32],
     weight: &[f32],
@@ -270,12 +275,12 @@ pub unsafe fn convolve_f32(
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
-    // SAFETY: AVX2 and FMA are enabled here.
+    // SAFETY: the caller runs on `L`'s CPU.
     unsafe {
         if sequence.positions <= STREAMING_POSITIONS {
-            convolve_streaming(sequence, input, weight, bias, output, accumulate)
+            convolve_streaming::<L>(sequence, input, weight, bias, output, accumulate)
         } else {
-            convolve(sequence, input, weight, None, bias, output, accumulate)
+            convolve::<L, f32>(sequence, input, weight, None, bias, output, accumulate)
         }
     }
 }
@@ -287,12 +292,12 @@ pub unsafe fn convolve_f32(
 /// walk rows `out_channels` apart, ran 2-4x slower than this on cold weights).
 ///
 /// # Safety
-/// The CPU supports AVX2 and FMA.
+/// The CPU supports `L`.
 ///
 /// # Panics
 /// If a slice is shorter than `sequence` needs (the model code never passes such slices).
-#[target_feature(enable = "avx2,fma")]
-pub unsafe fn convolve_streaming(
+#[inline(always)]
+unsafe fn convolve_streaming<L: Lanes>(
     sequence: &Sequence,
     input: &[f32],
     weight: &[f32],
@@ -322,9 +327,9 @@ pub unsafe fn convolve_streaming(
                 let input_row = (position * sequence.stride) as isize + offset;
                 let x = input[input_row as usize * in_channels + c];
                 let row = sequence.out_first + position * sequence.out_step;
-                // SAFETY: AVX2 and FMA are enabled here.
+                // SAFETY: the caller runs on `L`'s CPU.
                 unsafe {
-                    add_multiple(
+                    add_multiple::<L>(
                         &mut output[row * out_channels..][..out_channels],
                         x,
                         weights,
@@ -338,18 +343,18 @@ pub unsafe fn convolve_streaming(
 /// `out += x * weights` (equal lengths).
 ///
 /// # Safety
-/// The CPU supports AVX2 and FMA.
-#[inline]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn add_multiple(out: &mut [f32], x: f32, weights: &[f32]) {
-    let x8 = _mm256_set1_ps(x);
-    let mut out_chunks = out.chunks_exact_mut(8);
-    let mut weight_chunks = weights.chunks_exact(8);
+/// The CPU supports `L`.
+#[inline(always)]
+unsafe fn add_multiple<L: Lanes>(out: &mut [f32], x: f32, weights: &[f32]) {
+    // SAFETY: the caller runs on `L`'s CPU.
+    let splat = unsafe { L::splat(x) };
+    let mut out_chunks = out.chunks_exact_mut(L::WIDTH);
+    let mut weight_chunks = weights.chunks_exact(L::WIDTH);
     for (o, w) in (&mut out_chunks).zip(&mut weight_chunks) {
-        // SAFETY: both chunks hold eight floats.
+        // SAFETY: both chunks hold WIDTH floats; the caller runs on `L`'s CPU.
         unsafe {
-            let sum = _mm256_fmadd_ps(x8, _mm256_loadu_ps(w.as_ptr()), _mm256_loadu_ps(o.as_ptr()));
-            _mm256_storeu_ps(o.as_mut_ptr(), sum);
+            let sum = L::fma(splat, L::load(w.as_ptr()), L::load(o.as_ptr()));
+            L::store(o.as_mut_ptr(), sum);
         }
     }
     for (o, &w) in out_chunks
@@ -362,24 +367,24 @@ unsafe fn add_multiple(out: &mut [f32], x: f32, weights: &[f32]) {
 }
 
 /// The sums of output positions `first ..` (up to four) for output channels `channel ..
-/// channel + 8 VECS`.
+/// channel + VECS WIDTH`.
 ///
 /// # Safety
-/// The CPU supports AVX2 and FMA; the slices have the lengths [`convolve`] asserts;
-/// `channel + 8 VECS <= out_channels`.
-#[inline]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn tile<W: WeightLane, const VECS: usize>(
+/// The CPU supports `L`; the slices have the lengths [`convolve`] asserts;
+/// `channel + VECS WIDTH <= out_channels`.
+#[inline(always)]
+unsafe fn tile<L: Lanes, W: WeightLane, const VECS: usize>(
     sequence: &Sequence,
     input: &[f32],
     weight: &[W],
     first: usize,
     channel: usize,
-) -> [[__m256; VECS]; POSITIONS] {
+) -> [[L::Vector; VECS]; POSITIONS] {
     let (in_channels, out_channels) = (sequence.in_channels, sequence.out_channels);
     let count = (sequence.positions - first).min(POSITIONS);
     let input_step = sequence.stride * in_channels;
-    let mut sums = [[_mm256_setzero_ps(); VECS]; POSITIONS];
+    // SAFETY: the caller runs on `L`'s CPU.
+    let mut sums = [[unsafe { L::zero() }; VECS]; POSITIONS];
     for index in 0..sequence.taps {
         let (tap, offset) = sequence.tap(index);
         let (start, end) = sequence.inside(offset, first, count);
@@ -404,7 +409,7 @@ unsafe fn tile<W: WeightLane, const VECS: usize>(
                     $(
                         // SAFETY: see above; the range was computed by `inside`.
                         ($start, $end) => unsafe {
-                            accumulate::<W, VECS, $start, $end>(
+                            accumulate::<L, W, VECS, $start, $end>(
                                 &mut sums, rows, weights, out_channels, in_channels,
                             )
                         },
@@ -433,13 +438,18 @@ unsafe fn tile<W: WeightLane, const VECS: usize>(
 /// `START .. END` (a compile-time range keeps the accumulators in registers).
 ///
 /// # Safety
-/// The CPU supports AVX2 and FMA; `rows.0` points at the input row of position `START`,
-/// later positions `rows.1` floats apart, each with `in_channels` readable values; `weights`
-/// points at `in_channels` rows, `weight_step` apart, of `8 VECS` readable weights.
-#[inline]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn accumulate<W: WeightLane, const VECS: usize, const START: usize, const END: usize>(
-    sums: &mut [[__m256; VECS]; POSITIONS],
+/// The CPU supports `L`; `rows.0` points at the input row of position `START`, later
+/// positions `rows.1` floats apart, each with `in_channels` readable values; `weights`
+/// points at `in_channels` rows, `weight_step` apart, of `VECS WIDTH` readable weights.
+#[inline(always)]
+unsafe fn accumulate<
+    L: Lanes,
+    W: WeightLane,
+    const VECS: usize,
+    const START: usize,
+    const END: usize,
+>(
+    sums: &mut [[L::Vector; VECS]; POSITIONS],
     (rows, input_step): (*const f32, usize),
     weights: *const W,
     weight_step: usize,
@@ -449,16 +459,15 @@ unsafe fn accumulate<W: WeightLane, const VECS: usize, const START: usize, const
     // registers (iterator adapters here were left as calls, with the sums in memory).
     #[allow(clippy::needless_range_loop)]
     for c in 0..in_channels {
-        let mut lanes = [_mm256_setzero_ps(); VECS];
-        for vec in 0..VECS {
-            // SAFETY: row `c` of the weights holds `8 VECS` readable values.
-            lanes[vec] = unsafe { W::load8(weights.add(c * weight_step + 8 * vec)) };
-        }
+        // SAFETY (this block): row `c` of the weights holds `VECS WIDTH` readable values, the
+        // input row of each position `in_channels`; the caller runs on `L`'s CPU.
+        let lanes: [L::Vector; VECS] = core::array::from_fn(|vec| unsafe {
+            W::load::<L>(weights.add(c * weight_step + L::WIDTH * vec))
+        });
         for position in START..END {
-            // SAFETY: the input row of this position holds `in_channels` values.
-            let x = unsafe { _mm256_broadcast_ss(&*rows.add((position - START) * input_step + c)) };
+            let x = unsafe { L::splat(*rows.add((position - START) * input_step + c)) };
             for vec in 0..VECS {
-                sums[position][vec] = _mm256_fmadd_ps(x, lanes[vec], sums[position][vec]);
+                sums[position][vec] = unsafe { L::fma(x, lanes[vec], sums[position][vec]) };
             }
         }
     }
@@ -467,13 +476,12 @@ unsafe fn accumulate<W: WeightLane, const VECS: usize, const START: usize, const
 /// `output += sums * scales` for a tile.
 ///
 /// # Safety
-/// The CPU supports AVX2; `output` holds the sequence's rows; `channel + 8 VECS <=
+/// The CPU supports `L`; `output` holds the sequence's rows; `channel + VECS WIDTH <=
 /// out_channels`; `scales` has `out_channels` values.
-#[inline]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn add_scaled<const VECS: usize>(
+#[inline(always)]
+unsafe fn add_scaled<L: Lanes, const VECS: usize>(
     sequence: &Sequence,
-    sums: &[[__m256; VECS]; POSITIONS],
+    sums: &[[L::Vector; VECS]; POSITIONS],
     first: usize,
     channel: usize,
     scales: Scales<'_>,
@@ -482,20 +490,20 @@ unsafe fn add_scaled<const VECS: usize>(
     let count = (sequence.positions - first).min(POSITIONS);
     for (position, sum) in sums.iter().enumerate().take(count) {
         let row = sequence.out_first + (first + position) * sequence.out_step;
-        let out = &mut output[row * sequence.out_channels + channel..][..8 * VECS];
+        let out = &mut output[row * sequence.out_channels + channel..][..L::WIDTH * VECS];
         for (vec, &value) in sum.iter().enumerate() {
-            // SAFETY: `channel + 8 vec + 8 <= out_channels`, the length of `scales`; `out`
-            // holds `8 VECS` floats.
+            // SAFETY: `channel + WIDTH (vec + 1) <= out_channels`, the length of `scales`;
+            // `out` holds `VECS WIDTH` floats; the caller runs on `L`'s CPU.
             unsafe {
-                let target = out.as_mut_ptr().add(8 * vec);
+                let target = out.as_mut_ptr().add(L::WIDTH * vec);
                 let value = match scales {
                     Some(scales) => {
-                        let scale = _mm256_loadu_ps(scales.as_ptr().add(channel + 8 * vec));
-                        _mm256_fmadd_ps(value, scale, _mm256_loadu_ps(target))
+                        let scale = L::load(scales.as_ptr().add(channel + L::WIDTH * vec));
+                        L::fma(value, scale, L::load(target))
                     }
-                    None => _mm256_add_ps(value, _mm256_loadu_ps(target)),
+                    None => L::add(value, L::load(target)),
                 };
-                _mm256_storeu_ps(target, value);
+                L::store(target, value);
             }
         }
     }
@@ -544,12 +552,12 @@ fn narrow_channels<W: WeightLane>(
 /// cols]` weight (the FiLM layers: rows of ~800 weights, each read once).
 ///
 /// # Safety
-/// The CPU supports AVX2 and FMA.
+/// The CPU supports `L`.
 ///
 /// # Panics
 /// If the lengths disagree (the model code never passes such slices).
-#[target_feature(enable = "avx2,fma")]
-pub unsafe fn matvec<W: WeightLane>(
+#[inline(always)]
+unsafe fn matvec<L: Lanes, W: WeightLane>(
     weight: &[W],
     scales: Scales<'_>,
     input: &[f32],
@@ -566,36 +574,37 @@ pub unsafe fn matvec<W: WeightLane>(
         output.copy_from_slice(base);
         return;
     }
-    let vector_cols = cols - cols % 8;
+    let width = L::WIDTH;
+    let vector_cols = cols - cols % width;
     for (r, (out, row)) in output.iter_mut().zip(weight.chunks_exact(cols)).enumerate() {
         // Four independent sums hide the FMA latency.
-        let mut sums = [_mm256_setzero_ps(); 4];
+        // SAFETY: the caller runs on `L`'s CPU.
+        let mut sums = [unsafe { L::zero() }; 4];
         let mut c = 0;
-        while c + 32 <= vector_cols {
+        while c + 4 * width <= vector_cols {
             for (k, sum) in sums.iter_mut().enumerate() {
-                // SAFETY: `c + 8 k + 8 <= cols`, the length of `row` and `input`.
+                // SAFETY: `c + WIDTH (k + 1) <= cols`, the length of `row` and `input`.
                 unsafe {
-                    let w = W::load8(row.as_ptr().add(c + 8 * k));
-                    let x = _mm256_loadu_ps(input.as_ptr().add(c + 8 * k));
-                    *sum = _mm256_fmadd_ps(w, x, *sum);
+                    let w = W::load::<L>(row.as_ptr().add(c + width * k));
+                    let x = L::load(input.as_ptr().add(c + width * k));
+                    *sum = L::fma(w, x, *sum);
                 }
             }
-            c += 32;
+            c += 4 * width;
         }
         while c < vector_cols {
-            // SAFETY: `c + 8 <= vector_cols <= cols`.
+            // SAFETY: `c + WIDTH <= vector_cols <= cols`.
             unsafe {
-                let w = W::load8(row.as_ptr().add(c));
-                let x = _mm256_loadu_ps(input.as_ptr().add(c));
-                sums[0] = _mm256_fmadd_ps(w, x, sums[0]);
+                let w = W::load::<L>(row.as_ptr().add(c));
+                let x = L::load(input.as_ptr().add(c));
+                sums[0] = L::fma(w, x, sums[0]);
             }
-            c += 8;
+            c += width;
         }
-        let total = _mm256_add_ps(
-            _mm256_add_ps(sums[0], sums[1]),
-            _mm256_add_ps(sums[2], sums[3]),
-        );
-        let mut sum = horizontal_sum(total);
+        // SAFETY: the caller runs on `L`'s CPU.
+        let mut sum = unsafe {
+            L::horizontal_sum(L::add(L::add(sums[0], sums[1]), L::add(sums[2], sums[3])))
+        };
         for (&w, &x) in row[vector_cols..].iter().zip(&input[vector_cols..]) {
             sum += w.to_f32() * x;
         }
@@ -603,10 +612,148 @@ pub unsafe fn matvec<W: WeightLane>(
     }
 }
 
-#[inline]
-#[target_feature(enable = "avx2")]
-fn horizontal_sum(v: __m256) -> f32 {
-    let quad = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
-    let pair = _mm_add_ps(quad, _mm_movehl_ps(quad, quad));
-    _mm_cvtss_f32(_mm_add_ss(pair, _mm_shuffle_ps::<1>(pair, pair)))
+/// The kernels of this module compiled for one backend (AVX2 + FMA on YMM, or AVX-512F on
+/// ZMM: the same body), and the [`Kernels`](crate::kernels::Kernels) methods built on them,
+/// which both backends call as they are.
+macro_rules! backend {
+    ($module:ident, $lanes:ty, $features:literal) => {
+        pub(crate) mod $module {
+            use super::{Scales, Sequence, WeightLane};
+            use crate::kernels::scalar::{Scalar, assert_conv_lengths};
+            use crate::kernels::{Accumulate, ConvShape, Kernels};
+
+            /// [`convolve`](super::convolve) on this backend's vectors.
+            ///
+            /// # Safety
+            /// The CPU supports the backend's features.
+            #[target_feature(enable = $features)]
+            unsafe fn convolve<W: WeightLane>(
+                sequence: &Sequence,
+                input: &[f32],
+                weight: &[W],
+                scales: Scales<'_>,
+                bias: &[f32],
+                output: &mut [f32],
+                accumulate: Accumulate,
+            ) {
+                // SAFETY: this function's contract is the body's.
+                unsafe {
+                    super::convolve::<$lanes, W>(
+                        sequence, input, weight, scales, bias, output, accumulate,
+                    )
+                }
+            }
+
+            /// [`convolve_f32`](super::convolve_f32) on this backend's vectors.
+            ///
+            /// # Safety
+            /// The CPU supports the backend's features.
+            #[target_feature(enable = $features)]
+            unsafe fn convolve_f32(
+                sequence: &Sequence,
+                input: &[f32],
+                weight: &[f32],
+                bias: &[f32],
+                output: &mut [f32],
+                accumulate: Accumulate,
+            ) {
+                // SAFETY: this function's contract is the body's.
+                unsafe {
+                    super::convolve_f32::<$lanes>(sequence, input, weight, bias, output, accumulate)
+                }
+            }
+
+            /// [`matvec`](super::matvec) on this backend's vectors: `Kernels::matvec` and
+            /// `Kernels::matvec_weight_int8`.
+            ///
+            /// # Safety
+            /// The CPU supports the backend's features.
+            #[target_feature(enable = $features)]
+            pub(crate) unsafe fn matvec<W: WeightLane>(
+                weight: &[W],
+                scales: Scales<'_>,
+                input: &[f32],
+                base: &[f32],
+                output: &mut [f32],
+            ) {
+                // SAFETY: this function's contract is the body's.
+                unsafe { super::matvec::<$lanes, W>(weight, scales, input, base, output) }
+            }
+
+            /// `Kernels::conv` for 1-D shapes; `None` (nothing done) for 2-D ones.
+            ///
+            /// # Safety
+            /// The CPU supports the backend's features.
+            pub(crate) unsafe fn conv(
+                shape: &ConvShape,
+                (input, weight, bias): (&[f32], &[f32], &[f32]),
+                output: &mut [f32],
+                accumulate: Accumulate,
+            ) -> Option<()> {
+                let sequence = Sequence::from_shape(shape)?;
+                assert_conv_lengths(shape, (input, weight, bias), output.len());
+                // SAFETY: the caller vouches for the CPU.
+                unsafe { convolve_f32(&sequence, input, weight, bias, output, accumulate) };
+                Some(())
+            }
+
+            /// `Kernels::upsample_conv`.
+            ///
+            /// # Safety
+            /// The CPU supports the backend's features.
+            #[allow(clippy::too_many_arguments)]
+            pub(crate) unsafe fn upsample_conv(
+                length: usize,
+                in_channels: usize,
+                out_channels: usize,
+                input: &[f32],
+                weight: &[f32],
+                bias: &[f32],
+                output: &mut [f32],
+            ) {
+                assert_eq!(input.len(), length * in_channels);
+                assert_eq!(weight.len(), 4 * in_channels * out_channels);
+                assert_eq!(output.len(), 2 * length * out_channels);
+                for parity in 0..2 {
+                    let half = Sequence::upsample_half(length, in_channels, out_channels, parity);
+                    let overwrite = Accumulate::Overwrite;
+                    // SAFETY: the caller vouches for the CPU.
+                    unsafe { convolve_f32(&half, input, weight, bias, output, overwrite) };
+                }
+            }
+
+            /// `Kernels::conv_weight_int8`: the sequence kernel for 1-D shapes (the U-Net's),
+            /// the scalar reference otherwise.
+            ///
+            /// # Safety
+            /// The CPU supports the backend's features.
+            pub(crate) unsafe fn conv_weight_int8(
+                shape: &ConvShape,
+                input: &[f32],
+                (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
+                output: &mut [f32],
+                accumulate: Accumulate,
+            ) {
+                assert_conv_lengths(shape, (input, weight, bias), output.len());
+                assert_eq!(weight_scales.len(), shape.out_channels);
+                let Some(sequence) = Sequence::from_shape(shape) else {
+                    return Scalar.conv_weight_int8(
+                        shape,
+                        input,
+                        weight,
+                        weight_scales,
+                        bias,
+                        output,
+                        accumulate,
+                    );
+                };
+                let scales = Some(weight_scales);
+                // SAFETY: the caller vouches for the CPU.
+                unsafe { convolve(&sequence, input, weight, scales, bias, output, accumulate) }
+            }
+        }
+    };
 }
+
+backend!(avx2, super::Ymm, "avx2,fma");
+backend!(avx512, super::Zmm, "avx512f,avx512bw,avx512vl");
