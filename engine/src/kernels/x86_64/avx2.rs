@@ -2,7 +2,7 @@
 //! vectors, tiles of 6 pixels x 16 channels in twelve accumulators (of 16 registers; the
 //! scalar reference reloads and stores its output for every product); the int8 one is the
 //! shared body of `int8` on YMM vectors. The U-Net's 1-D convolutions, upsampling and
-//! matrix-vector products use the weight-streaming [`sequence`] kernels.
+//! matrix-vector products use the weight-streaming `sequence` kernels.
 
 use super::f32_tile;
 use super::lanes::Ymm;
