@@ -2,7 +2,9 @@
 //!
 //! Each heavy kernel family is a method of [`Kernels`], the contract every implementation
 //! meets; [`scalar::Scalar`] is the reference, always compiled, against which any faster
-//! implementation is tested. Light element-wise operations live in [`ops`].
+//! implementation is tested. Light element-wise operations live in [`ops`] as portable code;
+//! they are [`Kernels`] methods too, so a SIMD backend can compile that same code for its
+//! vectors (same bits, tested).
 //!
 //! Adding an architecture (say aarch64 NEON with SDOT) touches no model code: a folder
 //! `kernels/aarch64/` with a type implementing [`Kernels`] (methods it does not speed up can
@@ -30,8 +32,8 @@ pub enum Backend {
     Scalar,
     /// x86-64 AVX2 + FMA.
     Avx2,
-    /// x86-64 AVX-512 (F, BW, VL) with VNNI: the int8 and f32 2-D convolutions; AVX2 for
-    /// the rest.
+    /// x86-64 AVX-512 (F, BW, VL) with VNNI: the int8 and f32 2-D convolutions, the U-Net
+    /// kernels and the element-wise operations on ZMM vectors; AVX2 where those do not apply.
     Avx512,
 }
 
