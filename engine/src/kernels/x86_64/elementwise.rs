@@ -1,65 +1,46 @@
-//! The portable element-wise operations of [`ops`] compiled for AVX2 and for AVX-512: the
+//! The portable element-wise operations of `ops` compiled for AVX2 and for AVX-512: the
 //! same `#[inline(always)]` code inside a `#[target_feature]` function, so the compiler
 //! vectorizes it 8 or 16 lanes wide instead of the baseline's 4 (quantizing and normalizing
 //! the trunk's activations was a quarter of the int8 encode). The order of operations is
 //! the portable one, so the bits are too.
 
-use crate::kernels::ops::{self, Activation};
+/// The wrappers for one backend.
+macro_rules! backend {
+    ($module:ident, $features:literal) => {
+        pub(crate) mod $module {
+            use crate::kernels::ops::{self, Activation};
 
-/// [`ops::quantize_rows`] on AVX2.
-#[target_feature(enable = "avx2,fma")]
-pub(crate) fn quantize_rows_avx2(
-    input: &[f32],
-    row_len: usize,
-    values: &mut [i8],
-    scales: &mut [f32],
-) -> bool {
-    ops::quantize_rows(input, row_len, values, scales)
+            /// [`ops::quantize_rows`] on this backend's vectors.
+            #[target_feature(enable = $features)]
+            pub(crate) fn quantize_rows(
+                input: &[f32],
+                row_len: usize,
+                values: &mut [i8],
+                scales: &mut [f32],
+            ) -> bool {
+                ops::quantize_rows(input, row_len, values, scales)
+            }
+
+            /// [`ops::group_norm`] on this backend's vectors.
+            #[target_feature(enable = $features)]
+            pub(crate) fn group_norm(
+                data: &mut [f32],
+                channels: usize,
+                groups: usize,
+                (gamma, beta): (&[f32], &[f32]),
+                activation: Activation,
+            ) {
+                ops::group_norm(data, channels, groups, gamma, beta, activation)
+            }
+
+            /// [`ops::add_activate`] on this backend's vectors.
+            #[target_feature(enable = $features)]
+            pub(crate) fn add_activate(target: &mut [f32], source: &[f32], activation: Activation) {
+                ops::add_activate(target, source, activation)
+            }
+        }
+    };
 }
 
-/// [`ops::quantize_rows`] on AVX-512.
-#[target_feature(enable = "avx512f,avx512bw,avx512vl")]
-pub(crate) fn quantize_rows_avx512(
-    input: &[f32],
-    row_len: usize,
-    values: &mut [i8],
-    scales: &mut [f32],
-) -> bool {
-    ops::quantize_rows(input, row_len, values, scales)
-}
-
-/// [`ops::group_norm`] on AVX2.
-#[target_feature(enable = "avx2,fma")]
-pub(crate) fn group_norm_avx2(
-    data: &mut [f32],
-    channels: usize,
-    groups: usize,
-    (gamma, beta): (&[f32], &[f32]),
-    activation: Activation,
-) {
-    ops::group_norm(data, channels, groups, gamma, beta, activation)
-}
-
-/// [`ops::group_norm`] on AVX-512.
-#[target_feature(enable = "avx512f,avx512bw,avx512vl")]
-pub(crate) fn group_norm_avx512(
-    data: &mut [f32],
-    channels: usize,
-    groups: usize,
-    (gamma, beta): (&[f32], &[f32]),
-    activation: Activation,
-) {
-    ops::group_norm(data, channels, groups, gamma, beta, activation)
-}
-
-/// [`ops::add_activate`] on AVX2.
-#[target_feature(enable = "avx2,fma")]
-pub(crate) fn add_activate_avx2(target: &mut [f32], source: &[f32], activation: Activation) {
-    ops::add_activate(target, source, activation)
-}
-
-/// [`ops::add_activate`] on AVX-512.
-#[target_feature(enable = "avx512f,avx512bw,avx512vl")]
-pub(crate) fn add_activate_avx512(target: &mut [f32], source: &[f32], activation: Activation) {
-    ops::add_activate(target, source, activation)
-}
+backend!(avx2, "avx2,fma");
+backend!(avx512, "avx512f,avx512bw,avx512vl");

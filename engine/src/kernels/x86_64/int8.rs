@@ -503,81 +503,70 @@ pub(crate) unsafe fn conv_pixel<L: Int8Lanes, const V: usize>(
 }
 
 /// Pixels and channel vectors of a tile, per backend: AVX2 has 16 YMM registers (8 sums,
-/// 2 weight vectors, the broadcast, the ones and a product); AVX-512 has 32 ZMM registers.
+/// 2 weight vectors, the broadcast, the ones and a product); AVX-512 has 32 ZMM registers
+/// (24 sums, 4 weight vectors, the broadcast). Of the shapes tried on the panda layers of
+/// `--bench kernels`, these were the fastest: (4, 2) against (2, 2), (3, 2) and (4, 1) on
+/// AVX2; (6, 4) against (4, 4), (5, 4), (8, 2), (8, 3) and (12, 2) on AVX-512.
 const AVX2_TILE: (usize, usize) = (4, 2);
 const VNNI_TILE: (usize, usize) = (6, 4);
 
-/// [`conv`] compiled for AVX2.
-///
-/// # Safety
-/// The CPU supports AVX2 and FMA; otherwise as for [`conv`].
-#[target_feature(enable = "avx2,fma")]
-pub(crate) unsafe fn conv_avx2(
-    shape: &ConvShape,
-    input: &QuantizedRows<'_>,
-    parameters: (&[i8], &[f32], &[f32]),
-    output: &mut [f32],
-    accumulate: Accumulate,
-) {
-    // SAFETY: this function's contract is the body's.
-    unsafe {
-        conv::<PairSumsYmm, { AVX2_TILE.0 }, { AVX2_TILE.1 }>(
-            shape, input, parameters, output, accumulate,
-        )
-    }
+/// [`conv`] and [`conv_pixel`] compiled for one backend: the thin `#[target_feature]`
+/// wrappers of the shared body.
+macro_rules! backend {
+    ($module:ident, $lanes:ty, $tile:expr, $features:literal) => {
+        pub(crate) mod $module {
+            use crate::kernels::{Accumulate, ConvShape, QuantizedRows};
+
+            const TILE: (usize, usize) = $tile;
+
+            /// [`conv`](super::conv) on this backend.
+            ///
+            /// # Safety
+            /// The CPU supports the backend's features; otherwise as for the body.
+            #[target_feature(enable = $features)]
+            pub(crate) unsafe fn conv(
+                shape: &ConvShape,
+                input: &QuantizedRows<'_>,
+                parameters: (&[i8], &[f32], &[f32]),
+                output: &mut [f32],
+                accumulate: Accumulate,
+            ) {
+                // SAFETY: this function's contract is the body's.
+                unsafe {
+                    super::conv::<$lanes, { TILE.0 }, { TILE.1 }>(
+                        shape, input, parameters, output, accumulate,
+                    )
+                }
+            }
+
+            /// [`conv_pixel`](super::conv_pixel) on this backend.
+            ///
+            /// # Safety
+            /// As for [`conv`]; the pixel is in the output and `output` holds its channels.
+            #[target_feature(enable = $features)]
+            pub(crate) unsafe fn conv_pixel(
+                shape: &ConvShape,
+                input: &QuantizedRows<'_>,
+                parameters: (&[i8], &[f32], &[f32]),
+                pixel: (usize, usize),
+                output: &mut [f32],
+            ) {
+                // SAFETY: this function's contract is the body's.
+                unsafe {
+                    super::conv_pixel::<$lanes, { TILE.1 }>(shape, input, parameters, pixel, output)
+                }
+            }
+        }
+    };
 }
 
-/// [`conv_pixel`] compiled for AVX2.
-///
-/// # Safety
-/// As for [`conv_avx2`]; the pixel is in the output and `output` holds its channels.
-#[target_feature(enable = "avx2,fma")]
-pub(crate) unsafe fn conv_pixel_avx2(
-    shape: &ConvShape,
-    input: &QuantizedRows<'_>,
-    parameters: (&[i8], &[f32], &[f32]),
-    pixel: (usize, usize),
-    output: &mut [f32],
-) {
-    // SAFETY: this function's contract is the body's.
-    unsafe { conv_pixel::<PairSumsYmm, { AVX2_TILE.1 }>(shape, input, parameters, pixel, output) }
-}
-
-/// [`conv`] compiled for AVX-512 VNNI.
-///
-/// # Safety
-/// The CPU supports AVX-512 F, BW, VL and VNNI; otherwise as for [`conv`].
-#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vnni")]
-pub(crate) unsafe fn conv_vnni(
-    shape: &ConvShape,
-    input: &QuantizedRows<'_>,
-    parameters: (&[i8], &[f32], &[f32]),
-    output: &mut [f32],
-    accumulate: Accumulate,
-) {
-    // SAFETY: this function's contract is the body's.
-    unsafe {
-        conv::<VnniZmm, { VNNI_TILE.0 }, { VNNI_TILE.1 }>(
-            shape, input, parameters, output, accumulate,
-        )
-    }
-}
-
-/// [`conv_pixel`] compiled for AVX-512 VNNI.
-///
-/// # Safety
-/// As for [`conv_vnni`]; the pixel is in the output and `output` holds its channels.
-#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vnni")]
-pub(crate) unsafe fn conv_pixel_vnni(
-    shape: &ConvShape,
-    input: &QuantizedRows<'_>,
-    parameters: (&[i8], &[f32], &[f32]),
-    pixel: (usize, usize),
-    output: &mut [f32],
-) {
-    // SAFETY: this function's contract is the body's.
-    unsafe { conv_pixel::<VnniZmm, { VNNI_TILE.1 }>(shape, input, parameters, pixel, output) }
-}
+backend!(avx2, super::PairSumsYmm, super::AVX2_TILE, "avx2,fma");
+backend!(
+    avx512,
+    super::VnniZmm,
+    super::VNNI_TILE,
+    "avx512f,avx512bw,avx512vl,avx512vnni"
+);
 
 /// A backend's [`conv`] wrapper.
 pub(crate) type ConvKernel =

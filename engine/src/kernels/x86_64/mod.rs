@@ -1,5 +1,124 @@
 //! x86-64 kernels, chosen at run time from what the CPU reports (CPUID works without std).
 
+/// The [`Kernels`](crate::kernels::Kernels) methods both x86-64 backends implement alike,
+/// each on its own compiled bodies: the U-Net kernels of `sequence::$backend`, the int8
+/// convolution of `int8::$backend`, the element-wise operations of `elementwise::$backend`.
+/// Expanded only inside the `impl Kernels` of a backend type that exists once CPUID has
+/// reported the features those bodies are compiled for (its `detect`), which is what every
+/// `unsafe` call below relies on.
+macro_rules! shared_kernels {
+    ($backend:ident) => {
+        fn upsample_conv(
+            &self,
+            length: usize,
+            in_channels: usize,
+            out_channels: usize,
+            input: &[f32],
+            weight: &[f32],
+            bias: &[f32],
+            output: &mut [f32],
+        ) {
+            let channels = (length, in_channels, out_channels);
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { sequence::$backend::upsample_conv(channels, input, weight, bias, output) }
+        }
+
+        fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { sequence::$backend::matvec(weight, None, input, base, output) }
+        }
+
+        fn conv_int8(
+            &self,
+            shape: &ConvShape,
+            input: &QuantizedRows<'_>,
+            weight: &[i8],
+            weight_scales: &[f32],
+            bias: &[f32],
+            output: &mut [f32],
+            accumulate: Accumulate,
+        ) {
+            let parameters = (weight, weight_scales, bias);
+            let kernel = int8::$backend::conv;
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { int8::checked_conv(kernel, shape, input, parameters, output, accumulate) }
+        }
+
+        fn conv_int8_pixel(
+            &self,
+            shape: &ConvShape,
+            input: &QuantizedRows<'_>,
+            weight: &[i8],
+            weight_scales: &[f32],
+            bias: &[f32],
+            pixel: (usize, usize),
+            output: &mut [f32],
+        ) {
+            let parameters = (weight, weight_scales, bias);
+            let kernel = int8::$backend::conv_pixel;
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { int8::checked_conv_pixel(kernel, shape, input, parameters, pixel, output) }
+        }
+
+        fn conv_weight_int8(
+            &self,
+            shape: &ConvShape,
+            input: &[f32],
+            weight: &[i8],
+            weight_scales: &[f32],
+            bias: &[f32],
+            output: &mut [f32],
+            accumulate: Accumulate,
+        ) {
+            let parameters = (weight, weight_scales, bias);
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe {
+                sequence::$backend::conv_weight_int8(shape, input, parameters, output, accumulate)
+            }
+        }
+
+        fn matvec_weight_int8(
+            &self,
+            weight: &[i8],
+            row_scales: &[f32],
+            input: &[f32],
+            base: &[f32],
+            output: &mut [f32],
+        ) {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { sequence::$backend::matvec(weight, Some(row_scales), input, base, output) }
+        }
+
+        fn quantize_rows(
+            &self,
+            input: &[f32],
+            row_len: usize,
+            values: &mut [i8],
+            scales: &mut [f32],
+        ) -> bool {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { elementwise::$backend::quantize_rows(input, row_len, values, scales) }
+        }
+
+        fn group_norm(
+            &self,
+            data: &mut [f32],
+            channels: usize,
+            groups: usize,
+            affine: (&[f32], &[f32]),
+            activation: Activation,
+        ) {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { elementwise::$backend::group_norm(data, channels, groups, affine, activation) }
+        }
+
+        fn add_activate(&self, target: &mut [f32], source: &[f32], activation: Activation) {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { elementwise::$backend::add_activate(target, source, activation) }
+        }
+    };
+}
+
 pub mod avx2;
 pub mod avx512;
 pub mod avx512_f32;

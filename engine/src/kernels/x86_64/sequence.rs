@@ -165,6 +165,16 @@ impl Sequence {
         (start, end)
     }
 
+    /// Panics unless the slices are long enough for this sequence (the model code never
+    /// passes shorter ones; the kernels read them unchecked).
+    fn assert_lengths(&self, input: usize, weight: usize, output: usize, bias: usize) {
+        let (in_channels, out_channels) = (self.in_channels, self.out_channels);
+        assert!(input >= self.in_length * in_channels);
+        assert!(weight >= self.weight_blocks() * in_channels * out_channels);
+        assert!(output >= self.output_rows() * out_channels);
+        assert_eq!(bias, out_channels);
+    }
+
     fn weight_blocks(&self) -> usize {
         if self.taps == 0 {
             0
@@ -202,11 +212,8 @@ unsafe fn convolve<L: Lanes, W: WeightLane>(
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
-    let (in_channels, out_channels) = (sequence.in_channels, sequence.out_channels);
-    assert!(input.len() >= sequence.in_length * in_channels);
-    assert!(weight.len() >= sequence.weight_blocks() * in_channels * out_channels);
-    assert!(output.len() >= sequence.output_rows() * out_channels);
-    assert_eq!(bias.len(), out_channels);
+    let out_channels = sequence.out_channels;
+    sequence.assert_lengths(input.len(), weight.len(), output.len(), bias.len());
     if let Some(scales) = scales {
         assert_eq!(scales.len(), out_channels);
     }
@@ -306,10 +313,7 @@ unsafe fn convolve_streaming<L: Lanes>(
     accumulate: Accumulate,
 ) {
     let (in_channels, out_channels) = (sequence.in_channels, sequence.out_channels);
-    assert!(input.len() >= sequence.in_length * in_channels);
-    assert!(weight.len() >= sequence.weight_blocks() * in_channels * out_channels);
-    assert!(output.len() >= sequence.output_rows() * out_channels);
-    assert_eq!(bias.len(), out_channels);
+    sequence.assert_lengths(input.len(), weight.len(), output.len(), bias.len());
     for position in 0..sequence.positions {
         let row = sequence.out_first + position * sequence.out_step;
         let out = &mut output[row * out_channels..][..out_channels];
@@ -701,11 +705,8 @@ macro_rules! backend {
             ///
             /// # Safety
             /// The CPU supports the backend's features.
-            #[allow(clippy::too_many_arguments)]
             pub(crate) unsafe fn upsample_conv(
-                length: usize,
-                in_channels: usize,
-                out_channels: usize,
+                (length, in_channels, out_channels): (usize, usize, usize),
                 input: &[f32],
                 weight: &[f32],
                 bias: &[f32],
