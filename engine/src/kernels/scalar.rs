@@ -74,6 +74,25 @@ pub(crate) fn conv_pixel(
     }
 }
 
+/// `out (+)= totals * weight_scales + bias` over output `channels` (product, then sum): the
+/// last step of both int8 kernels.
+fn store_scaled(
+    out: &mut [f32],
+    totals: &[f32],
+    (weight_scales, bias): (&[f32], &[f32]),
+    channels: core::ops::Range<usize>,
+    accumulate: Accumulate,
+) {
+    let parameters = weight_scales[channels.clone()].iter().zip(&bias[channels]);
+    for ((o, &total), (&scale, &b)) in out.iter_mut().zip(totals).zip(parameters) {
+        let value = total * scale + b;
+        match accumulate {
+            Accumulate::Overwrite => *o = value,
+            Accumulate::Add => *o += value,
+        }
+    }
+}
+
 /// The slice lengths [`Kernels::conv`] and [`Kernels::conv_weight_int8`] promise (weights
 /// of either type).
 pub(crate) fn assert_conv_lengths<Weight>(
@@ -218,19 +237,14 @@ pub(crate) fn conv_int8_pixel(
                     *total += sum as f32 * scale;
                 }
             }
-            let out = &mut out[block..block + width];
-            for (((o, &total), &scale), &b) in out
-                .iter_mut()
-                .zip(totals.iter())
-                .zip(&weight_scales[block..block + width])
-                .zip(&bias[block..block + width])
-            {
-                let value = total * scale + b;
-                match accumulate {
-                    Accumulate::Overwrite => *o = value,
-                    Accumulate::Add => *o += value,
-                }
-            }
+            let channels = block..block + width;
+            store_scaled(
+                &mut out[channels.clone()],
+                &totals[..width],
+                (weight_scales, bias),
+                channels,
+                accumulate,
+            );
         }
     }
 }
@@ -373,19 +387,14 @@ impl Kernels for Scalar {
                         }
                     }
                 }
-                let out = &mut out[block..block + width];
-                for (((o, &total), &scale), &b) in out
-                    .iter_mut()
-                    .zip(totals.iter())
-                    .zip(&weight_scales[block..block + width])
-                    .zip(&bias[block..block + width])
-                {
-                    let value = total * scale + b;
-                    match accumulate {
-                        Accumulate::Overwrite => *o = value,
-                        Accumulate::Add => *o += value,
-                    }
-                }
+                let channels = block..block + width;
+                store_scaled(
+                    &mut out[channels.clone()],
+                    &totals[..width],
+                    (weight_scales, bias),
+                    channels,
+                    accumulate,
+                );
             }
         }
     }
