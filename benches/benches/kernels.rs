@@ -9,7 +9,9 @@ use std::time::Duration;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use scdp_engine::Backend;
-use scdp_engine::kernels::{Accumulate, ConvShape, QuantizedRows, pack_int8_quads, select};
+use scdp_engine::kernels::{
+    Accumulate, ConvShape, Kernels, QuantizedRows, pack_int8_quads, select,
+};
 
 /// `(name, shape)` of the distinct int8 convolutions of one panda frame.
 fn panda_trunk_layers() -> [(&'static str, ConvShape); 8] {
@@ -84,32 +86,40 @@ fn benches(c: &mut Criterion) {
             scales: &scales,
             nonnegative: true,
         };
-        let mut group = c.benchmark_group(format!("conv_int8/{name}"));
-        group
-            .sample_size(20)
-            .warm_up_time(Duration::from_millis(500))
-            .measurement_time(Duration::from_secs(2))
-            .throughput(Throughput::Elements(macs(&shape)));
-        for backend in [Backend::Avx2, Backend::Avx512] {
-            let Some(kernels) = select(backend) else {
-                continue;
-            };
-            group.bench_function(kernels.name(), |b| {
-                b.iter(|| {
-                    kernels.conv_int8(
-                        &shape,
-                        black_box(&input),
-                        &packed,
-                        &weight_scales,
-                        &bias,
-                        &mut output,
-                        Accumulate::Overwrite,
-                    )
-                })
-            });
-        }
-        group.finish();
+        on_every_backend(c, format!("conv_int8/{name}"), &shape, |kernels| {
+            kernels.conv_int8(
+                &shape,
+                black_box(&input),
+                &packed,
+                &weight_scales,
+                &bias,
+                &mut output,
+                Accumulate::Overwrite,
+            )
+        });
     }
+}
+
+/// Times `run` on each SIMD backend this CPU has, as the group `name`, throughput in MACs.
+fn on_every_backend(
+    c: &mut Criterion,
+    name: String,
+    shape: &ConvShape,
+    mut run: impl FnMut(&dyn Kernels),
+) {
+    let mut group = c.benchmark_group(name);
+    group
+        .sample_size(20)
+        .warm_up_time(Duration::from_millis(500))
+        .measurement_time(Duration::from_secs(2))
+        .throughput(Throughput::Elements(macs(shape)));
+    for backend in [Backend::Avx2, Backend::Avx512] {
+        let Some(kernels) = select(backend) else {
+            continue;
+        };
+        group.bench_function(kernels.name(), |b| b.iter(|| run(kernels)));
+    }
+    group.finish();
 }
 
 fn f32_benches(c: &mut Criterion) {
@@ -133,30 +143,16 @@ fn f32_benches(c: &mut Criterion) {
         let weight: Vec<f32> = (0..shape.weight_len()).map(|_| value()).collect();
         let bias = vec![0.5f32; shape.out_channels];
         let mut output = vec![0.0f32; shape.output_len()];
-        let mut group = c.benchmark_group(format!("conv_f32/{name}"));
-        group
-            .sample_size(20)
-            .warm_up_time(Duration::from_millis(500))
-            .measurement_time(Duration::from_secs(2))
-            .throughput(Throughput::Elements(macs(&shape)));
-        for backend in [Backend::Avx2, Backend::Avx512] {
-            let Some(kernels) = select(backend) else {
-                continue;
-            };
-            group.bench_function(kernels.name(), |b| {
-                b.iter(|| {
-                    kernels.conv(
-                        &shape,
-                        black_box(&input),
-                        &weight,
-                        &bias,
-                        &mut output,
-                        Accumulate::Overwrite,
-                    )
-                })
-            });
-        }
-        group.finish();
+        on_every_backend(c, format!("conv_f32/{name}"), &shape, |kernels| {
+            kernels.conv(
+                &shape,
+                black_box(&input),
+                &weight,
+                &bias,
+                &mut output,
+                Accumulate::Overwrite,
+            )
+        });
     }
 }
 
