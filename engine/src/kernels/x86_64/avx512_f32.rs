@@ -14,6 +14,9 @@ use crate::kernels::{Accumulate, ConvShape};
 const PIXELS: usize = 14;
 const CHANNELS: usize = 32;
 
+/// Pixels per tile where 14-pixel tiles would leave more than a quarter of their slots empty.
+const SMALL_MAP_PIXELS: usize = 8;
+
 /// Whether [`conv`] and [`conv_pixel`] handle `shape`.
 pub fn covers(shape: &ConvShape) -> bool {
     shape.out_channels.is_multiple_of(CHANNELS) && shape.in_height > 1
@@ -30,8 +33,19 @@ pub unsafe fn conv(
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
+    // Small maps (metaworld's layer4 has 16 positions) would leave most of a second
+    // 14-pixel tile empty; 8-pixel tiles waste nothing there. Each pixel's chain is the same
+    // whichever tile computes it.
+    let positions = shape.out_height() * shape.out_width();
+    let waste = positions.div_ceil(PIXELS) * PIXELS - positions;
     // SAFETY: this function's contract is the body's (32 = 2 x 16 lanes).
-    unsafe { f32_tile::conv::<Zmm, PIXELS>(shape, parameters, output, accumulate) }
+    unsafe {
+        if 4 * waste > positions {
+            f32_tile::conv::<Zmm, SMALL_MAP_PIXELS>(shape, parameters, output, accumulate)
+        } else {
+            f32_tile::conv::<Zmm, PIXELS>(shape, parameters, output, accumulate)
+        }
+    }
 }
 
 /// [`Kernels::conv_pixel`](crate::kernels::Kernels::conv_pixel) matching [`conv`].
