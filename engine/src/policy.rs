@@ -126,6 +126,16 @@ impl<'w, 'a> Policy<'w, 'a> {
         backend: Backend,
     ) -> Result<Self, Error> {
         let kernels = kernels::select(backend).ok_or(Error::BackendUnavailable)?;
+        Self::with_kernels(model, arena, kernels)
+    }
+
+    /// [`new`](Self::new) running `kernels`, an implementation of the kernel contract the
+    /// caller supplies: the tool's calibration wraps a backend to see every layer's input.
+    pub fn with_kernels(
+        model: &'w Model<'w>,
+        arena: &'a mut [u8],
+        kernels: &'static dyn Kernels,
+    ) -> Result<Self, Error> {
         let plan = ArenaPlan::new(model.config());
         if arena.len() < plan.arena_bytes {
             return Err(Error::ArenaTooSmall {

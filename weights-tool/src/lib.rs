@@ -4,8 +4,10 @@
 //! [`remap::remap_keys`] -> [`keys::check_keys`] against [`keys::expected_keys`] ->
 //! [`lowering::lower_to_weights_file`].
 
+pub mod calibrate;
 pub mod checkpoint;
 pub mod config;
+pub mod gptq;
 pub mod inspect;
 pub mod keys;
 pub mod lowering;
@@ -13,6 +15,7 @@ pub mod quant;
 pub mod remap;
 pub mod run;
 pub mod safetensors_io;
+pub mod scenes;
 pub mod state_dict;
 pub mod synth;
 pub mod writer;

@@ -14,6 +14,7 @@ use std::collections::BTreeMap;
 use anyhow::{Context, Result, bail, ensure};
 use scdp_engine::config::{BackboneNorm, ModelConfig, UNET_LEVELS};
 
+use crate::gptq::ChannelAxis;
 use crate::quant::Quant;
 use crate::writer::Stored;
 
@@ -586,15 +587,12 @@ pub const INT8_KEEP_F32: &[(&str, &str)] = &[
 
 /// Symmetric int8 with one scale per channel: `scale = max |w| / 127` over the channel,
 /// `q = round(w / scale)`. Channels are the last axis (convolutions, `[.., out]`) or, with
-/// `rows`, the first (FiLM matrices, one row per output).
-fn quantize_per_channel(values: &[f32], channels: usize, rows: bool) -> Stored {
+/// `ChannelAxis::First`, the first (FiLM matrices, one row per output).
+fn quantize_per_channel(values: &[f32], channels: usize, axis: ChannelAxis) -> Stored {
     let per_channel = values.len() / channels;
-    let channel_of = |index: usize| {
-        if rows {
-            index / per_channel
-        } else {
-            index % channels
-        }
+    let channel_of = |index: usize| match axis {
+        ChannelAxis::First => index / per_channel,
+        ChannelAxis::Last => index % channels,
     };
     let mut largest = vec![0.0f32; channels];
     for (index, &value) in values.iter().enumerate() {
@@ -621,16 +619,60 @@ fn quantize_per_channel(values: &[f32], channels: usize, rows: bool) -> Stored {
     }
 }
 
+/// How int8 weights are rounded.
+#[derive(Clone, Copy, Default)]
+pub enum Rounding<'m> {
+    /// Each weight to the nearest step.
+    #[default]
+    Nearest,
+    /// GPTQ with the input moments of calibration scenes ([`calibrate`]); weights without a
+    /// moment are rounded to nearest.
+    Calibrated(&'m crate::calibrate::Moments),
+}
+
+/// GPTQ damping: this fraction of the mean diagonal of an input moment is added to its
+/// diagonal. Measured in docs/QUANTIZATION.md.
+pub const GPTQ_DAMPING: f64 = 0.01;
+
 /// Chooses each tensor's storage: everything f32, or int8 for every weight the engine can
 /// take as int8 except [`INT8_KEEP_F32`].
 pub fn store(
     config: &ModelConfig,
     lowered: Lowered,
     quant: Quant,
+    rounding: Rounding<'_>,
 ) -> Result<BTreeMap<String, Stored>> {
-    store_keeping(config, lowered, quant, |name| {
+    store_keeping(config, lowered, quant, rounding, |name| {
         INT8_KEEP_F32.iter().any(|(kept, _)| *kept == name)
     })
+}
+
+/// The tensors that may be stored as int8, with the length of their reduction axis (the
+/// inputs one output channel sums over).
+pub fn int8_tensors(config: &ModelConfig) -> Result<Vec<(String, usize)>> {
+    Ok(crate::writer::tensor_specs(config)?
+        .into_iter()
+        .filter_map(|spec| {
+            let (_, channels) = spec.int8_scales?;
+            let elements: usize = spec.dims.iter().product();
+            Some((spec.name, elements / channels))
+        })
+        .collect())
+}
+
+/// Runs the f32 model `lowered` on `scenes` and returns the input moments of its
+/// int8-capable weights, for [`Rounding::Calibrated`].
+pub fn calibrate(
+    config: &ModelConfig,
+    lowered: &Lowered,
+    scenes: &[crate::run::RunInputs],
+    progress: bool,
+) -> Result<crate::calibrate::Moments> {
+    let f32_file = crate::writer::write_weights_file(
+        config,
+        &store(config, lowered.clone(), Quant::F32, Rounding::Nearest)?,
+    )?;
+    crate::calibrate::input_moments(&f32_file, &int8_tensors(config)?, scenes, progress)
 }
 
 /// [`store`] with a custom choice of the weights kept in f32 in int8 mode (for measuring
@@ -639,6 +681,7 @@ pub fn store_keeping(
     config: &ModelConfig,
     lowered: Lowered,
     quant: Quant,
+    rounding: Rounding<'_>,
     keep_f32: impl Fn(&str) -> bool,
 ) -> Result<BTreeMap<String, Stored>> {
     let specs = crate::writer::tensor_specs(config)?;
@@ -650,8 +693,19 @@ pub fn store_keeping(
         let keep = keep_f32(&name);
         let tensor = match (quant, int8_channels, spec) {
             (Quant::Int8, Some(channels), Some(spec)) if !keep => {
-                let quantized =
-                    quantize_per_channel(&values, channels, name.ends_with(".film.weight"));
+                let axis = if name.ends_with(".film.weight") {
+                    ChannelAxis::First
+                } else {
+                    ChannelAxis::Last
+                };
+                let mut quantized = quantize_per_channel(&values, channels, axis);
+                if let (Rounding::Calibrated(moments), Stored::Int8 { values: q, scales }) =
+                    (rounding, &mut quantized)
+                    && let Some(moment) = moments.get(&name)
+                {
+                    *q = crate::gptq::quantize(&values, scales, axis, moment, GPTQ_DAMPING)
+                        .with_context(|| format!("GPTQ rounding of `{name}`"))?;
+                }
                 match (quantized, spec.dims.as_slice()) {
                     // 2-D convolutions take int8 activations: their kernels go to the layout of
                     // the integer dot products (docs/FORMAT.md).
@@ -691,5 +745,8 @@ pub fn lower_to_weights_file(
     state: &impl StateDictLookup,
     quant: Quant,
 ) -> Result<Vec<u8>> {
-    crate::writer::write_weights_file(config, &store(config, lower(config, state)?, quant)?)
+    crate::writer::write_weights_file(
+        config,
+        &store(config, lower(config, state)?, quant, Rounding::Nearest)?,
+    )
 }
