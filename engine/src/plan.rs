@@ -47,10 +47,12 @@ pub struct ArenaPlan {
     pub activated_cond: usize,
     /// FiLM scale and bias of the residual block being run.
     pub film: usize,
-    /// Int8 weights only: a trunk layer's input quantized (bytes of the largest trunk
-    /// activation, in f32 units), and one scale per pixel of it.
+    /// Int8 weights only: a trunk layer's input quantized to two digit planes (twice the
+    /// bytes of the largest trunk activation, in f32 units), one scale per pixel of it,
+    /// and `2 out_channels` values of per-layer scratch (`kernels::QuantizeScratch`).
     pub quantized: usize,
     pub quantized_scales: usize,
+    pub quantized_channels: usize,
 
     /// Shared scratch: the larger of the two phases below.
     pub scratch: usize,
@@ -79,6 +81,7 @@ impl ArenaPlan {
                 taps: saturate(plan.frame.taps),
                 tap_scales: saturate(plan.frame.tap_scales),
                 computed: saturate(plan.frame.computed),
+                channels: saturate(plan.frame.channels),
                 total: saturate(plan.frame.total),
             },
             states: saturate(plan.states),
@@ -90,6 +93,7 @@ impl ArenaPlan {
             film: saturate(plan.film),
             quantized: saturate(plan.quantized),
             quantized_scales: saturate(plan.quantized_scales),
+            quantized_channels: saturate(plan.quantized_channels),
             scratch: saturate(plan.scratch),
             trunk_activation: saturate(plan.trunk_activation),
             trunk_stem: saturate(plan.trunk_stem),
@@ -111,13 +115,15 @@ impl ArenaPlan {
 /// - `taps`: for those levels, the projection's input C(level + 1), `[H_n, W_n, C_n]`, in
 ///   f32, or in int8 (bytes, same element offsets) for int8 weights;
 /// - `tap_scales`: for int8 weights, one scale per cell of those taps;
-/// - `computed`: one bit per cell of those levels (u32 words), set once the cell is.
+/// - `computed`: one bit per cell of those levels (u32 words), set once the cell is;
+/// - `channels`: scratch of `2 d` values for the int8 projection of one cell.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct FrameLayout {
     pub maps: usize,
     pub taps: usize,
     pub tap_scales: usize,
     pub computed: usize,
+    pub channels: usize,
     pub total: usize,
 }
 
@@ -126,6 +132,7 @@ struct FrameLengths {
     taps: u64,
     tap_scales: u64,
     computed: u64,
+    channels: u64,
     total: u64,
 }
 
@@ -151,12 +158,14 @@ impl FrameLengths {
         let taps = aligned(taps);
         let tap_scales = aligned(on_demand_cells);
         let computed = aligned(on_demand_words);
+        let channels = aligned(2 * config.feature_dim as u64);
         FrameLengths {
             maps,
             taps,
             tap_scales,
             computed,
-            total: maps + taps + tap_scales + computed,
+            channels,
+            total: maps + taps + tap_scales + computed + channels,
         }
     }
 }
@@ -195,6 +204,7 @@ struct Lengths {
     film: u64,
     quantized: u64,
     quantized_scales: u64,
+    quantized_channels: u64,
     scratch: u64,
     trunk_activation: u64,
     trunk_stem: u64,
@@ -265,8 +275,10 @@ impl Lengths {
         // Int8 activations are the trunk's only (the U-Net's int8 weights are weight-only):
         // its inputs, the image included should the stem be int8, fit one activation
         // buffer, and their rows are at most the image's pixels.
-        let quantized = aligned(trunk_activation.div_ceil(4));
+        let quantized = aligned((2 * trunk_activation).div_ceil(4));
         let quantized_scales = aligned(pixels);
+        let widest_trunk_output = max(config.stage_channels(3) as u64, config.feature_dim as u64);
+        let quantized_channels = aligned(2 * widest_trunk_output);
         let persistent = features
             + states
             + anchors
@@ -276,7 +288,8 @@ impl Lengths {
             + activated_cond
             + film
             + quantized
-            + quantized_scales;
+            + quantized_scales
+            + quantized_channels;
         let scratch = max(trunk, unet);
         Lengths {
             arena_bytes: 4 * (persistent + scratch),
@@ -292,6 +305,7 @@ impl Lengths {
             film,
             quantized,
             quantized_scales,
+            quantized_channels,
             scratch,
             trunk_activation,
             trunk_stem,

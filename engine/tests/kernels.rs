@@ -938,19 +938,23 @@ fn quantizing_reports_whether_every_value_is_nonnegative() {
     tiny_negative[3] = -1e-6;
     for (name, kernels) in backends() {
         for (input, expected) in [(&relu, true), (&signed, false), (&tiny_negative, true)] {
-            let mut values = vec![0i8; input.len()];
+            let mut values = vec![0i8; 2 * input.len()];
             let mut scales = vec![0.0f32; rows];
+            let mut channels = vec![0.0f32; 16];
             let mut scratch = QuantizeScratch {
                 values: &mut values,
                 scales: &mut scales,
+                channels: &mut channels,
             };
-            let quantized = scratch.quantize(kernels, input, row_len);
-            assert_eq!(quantized.nonnegative, expected, "{name}");
+            let (digits, _) = scratch.quantize(kernels, input, row_len);
+            assert_eq!(digits.high.nonnegative, expected, "{name}");
             assert_eq!(
-                quantized.nonnegative,
-                quantized.values.iter().all(|&q| q >= 0),
+                digits.high.nonnegative,
+                digits.high.values.iter().all(|&q| q >= 0),
                 "{name}"
             );
+            assert!(digits.low.nonnegative, "{name}");
+            assert!(digits.low.values.iter().all(|&q| q >= 0), "{name}");
         }
     }
 }
@@ -1011,10 +1015,11 @@ fn elementwise_operations_are_bit_identical_on_every_backend() {
             }
             for input in [&data, &relu, &non_finite] {
                 let quantize = |kernels: &dyn Kernels| {
-                    let mut values = vec![0i8; input.len()];
+                    let mut values = vec![0i8; 2 * input.len()];
                     let mut scales = vec![0.0f32; positions];
+                    let (high, low) = values.split_at_mut(input.len());
                     let nonnegative =
-                        kernels.quantize_rows(input, channels, &mut values, &mut scales);
+                        kernels.quantize_rows(input, channels, (high, low), &mut scales);
                     (values, scales, nonnegative)
                 };
                 let (values, scales, nonnegative) = quantize(*kernels);
@@ -1100,6 +1105,16 @@ fn single_pixel_convolution_equals_the_dense_kernel_bit_for_bit() {
                 &mut dense_int8,
                 Accumulate::Overwrite,
             );
+            let mut dense_int8_twice = dense_int8.clone();
+            kernels.conv_int8(
+                &shape,
+                &quantized,
+                &weight_int8,
+                &weight_scales,
+                &bias,
+                &mut dense_int8_twice,
+                Accumulate::Add,
+            );
             for y in 0..shape.out_height() {
                 for x in 0..shape.out_width() {
                     let at = (y * shape.out_width() + x) * out_channels;
@@ -1120,10 +1135,25 @@ fn single_pixel_convolution_equals_the_dense_kernel_bit_for_bit() {
                         &bias,
                         (y, x),
                         &mut pixel,
+                        Accumulate::Overwrite,
                     );
                     assert!(
                         same(&pixel, &dense_int8[at..at + out_channels]),
                         "{name} case {case} int8 pixel ({y}, {x}) of {shape:?}"
+                    );
+                    kernels.conv_int8_pixel(
+                        &shape,
+                        &quantized,
+                        &weight_int8,
+                        &weight_scales,
+                        &bias,
+                        (y, x),
+                        &mut pixel,
+                        Accumulate::Add,
+                    );
+                    assert!(
+                        same(&pixel, &dense_int8_twice[at..at + out_channels]),
+                        "{name} case {case} int8 pixel added ({y}, {x}) of {shape:?}"
                     );
                 }
             }
@@ -1144,4 +1174,37 @@ fn matrix_vector_product_of_an_empty_input_is_the_base() {
         kernels.matvec_weight_int8(&[], &[0.5; 3], &[], &base, &mut output);
         assert_eq!(output, base, "{name} int8");
     }
+}
+
+/// The trunk's activation codes: two int8 digits `high * 128 + low` whose value is within
+/// half a step (`scale / 2`, scale = max |x| / 16383) of the input, low digits in 0..=127,
+/// high digits nonnegative exactly for nonnegative rows; zero rows get scale 1 and zero
+/// digits, non-finite rows a NaN scale (so the NaN reaches the result).
+#[test]
+fn split_activation_digits_reconstruct_the_input() {
+    let mut rng = Lcg(41);
+    let row = rng.vec(300);
+    let (mut high, mut low) = (vec![0i8; row.len()], vec![0i8; row.len()]);
+    let (scale, nonnegative) = ops::quantize_split_signs(&row, &mut high, &mut low);
+    let largest = row.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+    assert_eq!(scale, largest / 16383.0);
+    assert!(!nonnegative);
+    for ((&x, &h), &l) in row.iter().zip(&high).zip(&low) {
+        assert!((0..=127).contains(&l), "low digit {l}");
+        let value = (h as f32 * 128.0 + l as f32) * scale;
+        assert!(
+            (value - x).abs() <= scale * 0.5001,
+            "{x} -> {value} (scale {scale})"
+        );
+    }
+    let relu: Vec<f32> = row.iter().map(|x| x.max(0.0)).collect();
+    let (_, nonnegative) = ops::quantize_split_signs(&relu, &mut high, &mut low);
+    assert!(nonnegative && high.iter().all(|&h| (0..=127).contains(&h)));
+    assert_eq!(
+        ops::quantize_split_signs(&[0.0; 3], &mut [1; 3], &mut [1; 3]),
+        (1.0, true)
+    );
+    let (mut high, mut low) = ([1i8; 2], [1i8; 2]);
+    let (scale, _) = ops::quantize_split_signs(&[1.0, f32::NAN], &mut high, &mut low);
+    assert!(scale.is_nan() && high == [0, 0] && low == [0, 0]);
 }

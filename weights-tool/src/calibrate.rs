@@ -189,9 +189,18 @@ impl Kernels for Recorder {
         bias: &[f32],
         pixel: (usize, usize),
         output: &mut [f32],
+        accumulate: Accumulate,
     ) {
-        self.inner
-            .conv_int8_pixel(shape, input, weight, weight_scales, bias, pixel, output);
+        self.inner.conv_int8_pixel(
+            shape,
+            input,
+            weight,
+            weight_scales,
+            bias,
+            pixel,
+            output,
+            accumulate,
+        );
     }
 
     fn upsample_conv(
@@ -281,10 +290,10 @@ impl Kernels for Recorder {
         &self,
         input: &[f32],
         row_len: usize,
-        values: &mut [i8],
+        digits: (&mut [i8], &mut [i8]),
         scales: &mut [f32],
     ) -> bool {
-        self.inner.quantize_rows(input, row_len, values, scales)
+        self.inner.quantize_rows(input, row_len, digits, scales)
     }
 
     fn group_norm(

@@ -255,7 +255,8 @@ pub trait Kernels: Sync {
         );
     }
 
-    /// [`conv_pixel`](Self::conv_pixel) for [`conv_int8`](Self::conv_int8).
+    /// [`conv_pixel`](Self::conv_pixel) for [`conv_int8`](Self::conv_int8), which may also
+    /// add to `output` (the low digits of split activations, [`conv_digits`]).
     #[allow(clippy::too_many_arguments)]
     fn conv_int8_pixel(
         &self,
@@ -266,13 +267,14 @@ pub trait Kernels: Sync {
         bias: &[f32],
         pixel: (usize, usize),
         output: &mut [f32],
+        accumulate: Accumulate,
     ) {
         scalar::conv_int8_pixel(
             shape,
             input,
             (weight, weight_scales, bias),
             output,
-            Accumulate::Overwrite,
+            accumulate,
             pixel,
             0..shape.out_channels,
         );
@@ -343,18 +345,18 @@ pub trait Kernels: Sync {
         output: &mut [f32],
     );
 
-    /// [`ops::quantize_rows`]: per-row symmetric int8 quantization of `input` into `values`
-    /// and `scales`, returning whether every value is nonnegative. Element-wise, like the
-    /// two methods below: implementations compile the portable code for their vectors and
-    /// give the same bits.
+    /// [`ops::quantize_rows_split`]: per-row 15-bit symmetric quantization of `input` into
+    /// two int8 digit planes and `scales`, returning whether every code is nonnegative.
+    /// Element-wise, like the two methods below: implementations compile the portable code
+    /// for their vectors and give the same bits.
     fn quantize_rows(
         &self,
         input: &[f32],
         row_len: usize,
-        values: &mut [i8],
+        digits: (&mut [i8], &mut [i8]),
         scales: &mut [f32],
     ) -> bool {
-        ops::quantize_rows(input, row_len, values, scales)
+        ops::quantize_rows_split(input, row_len, digits, scales)
     }
 
     /// [`ops::group_norm`], in place.
@@ -388,30 +390,133 @@ pub struct QuantizedRows<'a> {
     pub nonnegative: bool,
 }
 
-/// Arena space for quantizing one layer input: values and one scale per row.
+/// Arena space for quantizing one layer input: its two digit planes (the high digits, then
+/// the low ones), one scale per row, and `2 out_channels` values per layer for the high
+/// pass's weight scales and the low pass's zero bias.
 #[derive(Debug)]
 pub struct QuantizeScratch<'a> {
     pub values: &'a mut [i8],
     pub scales: &'a mut [f32],
+    pub channels: &'a mut [f32],
+}
+
+/// Activations quantized to 15-bit codes in two int8 digit planes sharing their row scales
+/// ([`ops::quantize_split_signs`]); the low digits are always nonnegative.
+#[derive(Clone, Copy, Debug)]
+pub struct DigitRows<'a> {
+    pub high: QuantizedRows<'a>,
+    pub low: QuantizedRows<'a>,
+}
+
+impl<'a> DigitRows<'a> {
+    /// The view of planes written back to back in `values` (`2 rows row_len` bytes) with
+    /// `scales`; `nonnegative` is the high plane's flag.
+    pub fn from_planes(values: &'a [i8], scales: &'a [f32], nonnegative: bool) -> Self {
+        let (high, low) = values.split_at(values.len() / 2);
+        DigitRows {
+            high: QuantizedRows {
+                values: high,
+                scales,
+                nonnegative,
+            },
+            low: QuantizedRows {
+                values: low,
+                scales,
+                nonnegative: true,
+            },
+        }
+    }
 }
 
 impl QuantizeScratch<'_> {
     /// Quantizes `input`, rows of `row_len` values (the activation scheme of int8 weights
-    /// files: symmetric, scale = max |x| / 127 per row), and returns the view.
+    /// files, [`ops::quantize_split_signs`]), and returns the view and the per-layer
+    /// channel scratch.
     pub fn quantize(
         &mut self,
         kernels: &dyn Kernels,
         input: &[f32],
         row_len: usize,
-    ) -> QuantizedRows<'_> {
+    ) -> (DigitRows<'_>, &mut [f32]) {
         let rows = input.len() / row_len;
-        let values = &mut self.values[..input.len()];
+        let (high, low) = self.values[..2 * input.len()].split_at_mut(input.len());
         let scales = &mut self.scales[..rows];
-        let nonnegative = kernels.quantize_rows(input, row_len, values, scales);
-        QuantizedRows {
-            values,
-            scales,
-            nonnegative,
+        let nonnegative = kernels.quantize_rows(input, row_len, (high, low), scales);
+        let values = &self.values[..2 * input.len()];
+        (
+            DigitRows::from_planes(values, scales, nonnegative),
+            &mut *self.channels,
+        )
+    }
+}
+
+/// The int8 convolution of split activations: the high digits with the weight scales times
+/// [`ops::DIGIT_BASE`] (exact: a power of two), then the low digits added with a zero bias.
+/// `channels` holds `2 out_channels` values of scratch.
+#[allow(clippy::too_many_arguments)]
+fn conv_digits(
+    kernels: &dyn Kernels,
+    shape: &ConvShape,
+    digits: &DigitRows<'_>,
+    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
+    channels: &mut [f32],
+    pixel: Option<(usize, usize)>,
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    let out_channels = shape.out_channels;
+    let (high_scales, zero_bias) = channels[..2 * out_channels].split_at_mut(out_channels);
+    for (high, &scale) in high_scales.iter_mut().zip(weight_scales) {
+        *high = scale * ops::DIGIT_BASE;
+    }
+    zero_bias.fill(0.0);
+    let high_scales = &*high_scales;
+    let zero_bias = &*zero_bias;
+    match pixel {
+        None => {
+            kernels.conv_int8(
+                shape,
+                &digits.high,
+                weight,
+                high_scales,
+                bias,
+                output,
+                accumulate,
+            );
+            let add = Accumulate::Add;
+            kernels.conv_int8(
+                shape,
+                &digits.low,
+                weight,
+                weight_scales,
+                zero_bias,
+                output,
+                add,
+            );
+        }
+        Some(pixel) => {
+            let (high, low) = (&digits.high, &digits.low);
+            kernels.conv_int8_pixel(
+                shape,
+                high,
+                weight,
+                high_scales,
+                bias,
+                pixel,
+                output,
+                accumulate,
+            );
+            let add = Accumulate::Add;
+            kernels.conv_int8_pixel(
+                shape,
+                low,
+                weight,
+                weight_scales,
+                zero_bias,
+                pixel,
+                output,
+                add,
+            );
         }
     }
 }
@@ -443,8 +548,11 @@ pub fn convolve(
     match (*weight, activations) {
         (Weight::F32(values), _) => kernels.conv(shape, input, values, bias, output, accumulate),
         (Weight::Int8 { values, scales }, Activations::Int8(scratch)) => {
-            let input = scratch.quantize(kernels, input, shape.in_channels);
-            kernels.conv_int8(shape, &input, values, scales, bias, output, accumulate);
+            let (digits, channels) = scratch.quantize(kernels, input, shape.in_channels);
+            let parameters = (values, scales, bias);
+            conv_digits(
+                kernels, shape, &digits, parameters, channels, None, output, accumulate,
+            );
         }
         (Weight::Int8 { values, scales }, Activations::F32) => {
             kernels.conv_weight_int8(shape, input, values, scales, bias, output, accumulate)
@@ -454,7 +562,8 @@ pub fn convolve(
 
 /// Keeps a layer's input for later [`convolve_pixel`] calls, in the form its weights
 /// read: copied for f32 weights; quantized per row (`row_len` values) for int8 weights,
-/// the values as bytes at the front of `values` and one scale per row in `scales`.
+/// the two digit planes as bytes at the front of `values` and one scale per row in
+/// `scales`.
 pub fn store_input(
     kernels: &dyn Kernels,
     weight: &Weight<'_>,
@@ -466,23 +575,25 @@ pub fn store_input(
     match weight {
         Weight::F32(_) => values[..input.len()].copy_from_slice(input),
         Weight::Int8 { .. } => {
-            let mut scratch = QuantizeScratch {
-                values: bytemuck::cast_slice_mut(values),
-                scales,
-            };
-            scratch.quantize(kernels, input, row_len);
+            let bytes: &mut [i8] = bytemuck::cast_slice_mut(values);
+            let (high, low) = bytes[..2 * input.len()].split_at_mut(input.len());
+            let scales = &mut scales[..input.len() / row_len];
+            kernels.quantize_rows(input, row_len, (high, low), scales);
         }
     }
 }
 
 /// Output pixel `pixel` of [`convolve`] with [`Accumulate::Overwrite`], into `output`,
-/// from an input kept by [`store_input`] (`values`, `scales` as it left them).
+/// from an input kept by [`store_input`] (`values`, `scales` as it left them); `channels`
+/// is scratch of `2 out_channels` values for int8 weights.
+#[allow(clippy::too_many_arguments)]
 pub fn convolve_pixel(
     kernels: &dyn Kernels,
     shape: &ConvShape,
     (values, scales): (&[f32], &[f32]),
     (weight, bias): (&Weight<'_>, &[f32]),
     pixel: (usize, usize),
+    channels: &mut [f32],
     output: &mut [f32],
 ) {
     match *weight {
@@ -494,7 +605,7 @@ pub fn convolve_pixel(
             values: weights,
             scales: weight_scales,
         } => {
-            let values: &[i8] = &bytemuck::cast_slice(values)[..shape.input_len()];
+            let values: &[i8] = &bytemuck::cast_slice(values)[..2 * shape.input_len()];
             // Not kept with the input: found on the rows this pixel reads (a few hundred
             // bytes against that many times `out_channels` products). The flag only lets the
             // fast paths run; every path gives the same bits.
@@ -504,12 +615,14 @@ pub fn convolve_pixel(
                     .iter()
                     .all(|&value| value >= 0)
             });
-            let input = QuantizedRows {
-                values,
-                scales: &scales[..shape.in_height * shape.in_width],
-                nonnegative,
-            };
-            kernels.conv_int8_pixel(shape, &input, weights, weight_scales, bias, pixel, output)
+            let scales = &scales[..shape.in_height * shape.in_width];
+            let digits = DigitRows::from_planes(values, scales, nonnegative);
+            let parameters = (weights, weight_scales, bias);
+            let overwrite = Accumulate::Overwrite;
+            let pixel = Some(pixel);
+            conv_digits(
+                kernels, shape, &digits, parameters, channels, pixel, output, overwrite,
+            );
         }
     }
 }

@@ -10,15 +10,15 @@ macro_rules! backend {
         pub(crate) mod $module {
             use crate::kernels::ops::{self, Activation};
 
-            /// [`ops::quantize_rows`] on this backend's vectors.
+            /// [`ops::quantize_rows_split`] on this backend's vectors.
             #[target_feature(enable = $features)]
             pub(crate) fn quantize_rows(
                 input: &[f32],
                 row_len: usize,
-                values: &mut [i8],
+                digits: (&mut [i8], &mut [i8]),
                 scales: &mut [f32],
             ) -> bool {
-                ops::quantize_rows(input, row_len, values, scales)
+                ops::quantize_rows_split(input, row_len, digits, scales)
             }
 
             /// [`ops::group_norm`] on this backend's vectors.

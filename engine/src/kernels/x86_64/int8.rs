@@ -465,7 +465,7 @@ pub(crate) unsafe fn conv_pixel<L: Int8Lanes, const V: usize>(
     input: &QuantizedRows<'_>,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     (out_y, out_x): (usize, usize),
-    output: &mut [f32],
+    (output, accumulate): (&mut [f32], Accumulate),
 ) {
     let pixels = PixelTile::<1>::new(shape, out_y * shape.out_width() + out_x, 1);
     let out_channels = shape.out_channels;
@@ -478,11 +478,11 @@ pub(crate) unsafe fn conv_pixel<L: Int8Lanes, const V: usize>(
         unsafe {
             if channel + V * L::WIDTH <= out_channels {
                 let totals = tile::<L, 1, V>(shape, input, weight, &pixels, channel);
-                store::<L, 1, V>(&totals, 1, parameters, out, 0, Accumulate::Overwrite);
+                store::<L, 1, V>(&totals, 1, parameters, out, 0, accumulate);
                 channel += V * L::WIDTH;
             } else if channel + L::WIDTH <= out_channels {
                 let totals = tile::<L, 1, 1>(shape, input, weight, &pixels, channel);
-                store::<L, 1, 1>(&totals, 1, parameters, out, 0, Accumulate::Overwrite);
+                store::<L, 1, 1>(&totals, 1, parameters, out, 0, accumulate);
                 channel += L::WIDTH;
             } else {
                 break;
@@ -495,7 +495,7 @@ pub(crate) unsafe fn conv_pixel<L: Int8Lanes, const V: usize>(
             input,
             (weight, weight_scales, bias),
             output,
-            Accumulate::Overwrite,
+            accumulate,
             (out_y, out_x),
             channel..out_channels,
         );
@@ -549,11 +549,11 @@ macro_rules! backend {
                 input: &QuantizedRows<'_>,
                 parameters: (&[i8], &[f32], &[f32]),
                 pixel: (usize, usize),
-                output: &mut [f32],
+                target: (&mut [f32], Accumulate),
             ) {
                 // SAFETY: this function's contract is the body's.
                 unsafe {
-                    super::conv_pixel::<$lanes, { TILE.1 }>(shape, input, parameters, pixel, output)
+                    super::conv_pixel::<$lanes, { TILE.1 }>(shape, input, parameters, pixel, target)
                 }
             }
         }
@@ -573,8 +573,13 @@ pub(crate) type ConvKernel =
     unsafe fn(&ConvShape, &QuantizedRows<'_>, (&[i8], &[f32], &[f32]), &mut [f32], Accumulate);
 
 /// A backend's [`conv_pixel`] wrapper.
-pub(crate) type PixelKernel =
-    unsafe fn(&ConvShape, &QuantizedRows<'_>, (&[i8], &[f32], &[f32]), (usize, usize), &mut [f32]);
+pub(crate) type PixelKernel = unsafe fn(
+    &ConvShape,
+    &QuantizedRows<'_>,
+    (&[i8], &[f32], &[f32]),
+    (usize, usize),
+    (&mut [f32], Accumulate),
+);
 
 /// [`Kernels::conv_int8`](crate::kernels::Kernels::conv_int8) on `kernel`: the lengths
 /// checked, inputs the tiles do not take ([`tiles_apply`]) on the scalar reference.
@@ -628,16 +633,25 @@ pub(crate) unsafe fn checked_conv_pixel(
     input: &QuantizedRows<'_>,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     (out_y, out_x): (usize, usize),
-    output: &mut [f32],
+    (output, accumulate): (&mut [f32], Accumulate),
 ) {
     let parameters = (weight, weight_scales, bias);
     assert_int8_pixel_lengths(shape, input, parameters, (out_y, out_x), output.len());
     if !tiles_apply(shape, input) {
         let (channels, pixel) = (0..shape.out_channels, (out_y, out_x));
-        let overwrite = Accumulate::Overwrite;
-        return conv_int8_pixel(shape, input, parameters, output, overwrite, pixel, channels);
+        return conv_int8_pixel(
+            shape, input, parameters, output, accumulate, pixel, channels,
+        );
     }
     // SAFETY: the caller vouches for the CPU; the lengths and the pixel were asserted and
     // `tiles_apply` checked just above.
-    unsafe { kernel(shape, input, parameters, (out_y, out_x), output) }
+    unsafe {
+        kernel(
+            shape,
+            input,
+            parameters,
+            (out_y, out_x),
+            (output, accumulate),
+        )
+    }
 }

@@ -53,11 +53,13 @@ macro_rules! shared_kernels {
             bias: &[f32],
             pixel: (usize, usize),
             output: &mut [f32],
+            accumulate: Accumulate,
         ) {
             let parameters = (weight, weight_scales, bias);
             let kernel = int8::$backend::conv_pixel;
+            let target = (output, accumulate);
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { int8::checked_conv_pixel(kernel, shape, input, parameters, pixel, output) }
+            unsafe { int8::checked_conv_pixel(kernel, shape, input, parameters, pixel, target) }
         }
 
         fn conv_weight_int8(
@@ -93,11 +95,11 @@ macro_rules! shared_kernels {
             &self,
             input: &[f32],
             row_len: usize,
-            values: &mut [i8],
+            digits: (&mut [i8], &mut [i8]),
             scales: &mut [f32],
         ) -> bool {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { elementwise::$backend::quantize_rows(input, row_len, values, scales) }
+            unsafe { elementwise::$backend::quantize_rows(input, row_len, digits, scales) }
         }
 
         fn group_norm(
