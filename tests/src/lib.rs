@@ -167,6 +167,45 @@ pub fn synthetic_weights_file_as(
     Ok(weights_tool::writer::aligned_copy(&bytes))
 }
 
+/// Synthetic scenes the int8 fidelity is calibrated on (docs/QUANTIZATION.md: 8 were not
+/// enough, 32 met the floor).
+pub const CALIBRATION_SCENES: usize = 32;
+/// Seed of those scenes: not a golden case's (the cases' inputs never calibrate).
+pub const CALIBRATION_SEED: u64 = 7;
+
+/// [`synthetic_weights_file`] as int8 with GPTQ rounding, calibrated on
+/// [`CALIBRATION_SCENES`] synthetic scenes seen through `fixture`'s camera (a deployment
+/// constant: the camera the policy runs with is the one it is calibrated with).
+pub fn calibrated_int8_weights_file(fixture: &Fixture) -> Result<AlignedBytes> {
+    use weights_tool::lowering::{self, Rounding};
+    let config = &fixture.config;
+    let state = weights_tool::synth::synth_state_dict(config, fixture.seed);
+    let lowered = lowering::lower(config, &state)?;
+    let k = fixture.f32s("camera_k");
+    let t = fixture.f32s("camera_t");
+    let intrinsics = [[k[0], k[1], k[2]], [k[3], k[4], k[5]], [k[6], k[7], k[8]]];
+    let mut extrinsics = [[0.0; 4]; 4];
+    for (row, chunk) in extrinsics.iter_mut().zip(t.chunks_exact(4)) {
+        row.copy_from_slice(chunk);
+    }
+    let scenes = weights_tool::scenes::synthetic_scenes(
+        config,
+        intrinsics,
+        extrinsics,
+        CALIBRATION_SCENES,
+        CALIBRATION_SEED,
+    );
+    let moments = lowering::calibrate(config, &lowered, &scenes, false)?;
+    let stored = lowering::store(
+        config,
+        lowered,
+        weights_tool::Quant::Int8,
+        Rounding::Calibrated(&moments),
+    )?;
+    let bytes = weights_tool::writer::write_weights_file(config, &stored)?;
+    Ok(weights_tool::writer::aligned_copy(&bytes))
+}
+
 /// Everything an inference showed its observer, step by step.
 #[derive(Default, Debug)]
 pub struct Recorded {
