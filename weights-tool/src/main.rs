@@ -96,6 +96,16 @@ struct ConvertArgs {
     /// first matching rule applies).
     #[arg(long = "key-prefix", value_name = "OLD=NEW")]
     key_prefix: Vec<KeyPrefix>,
+    /// With `--quant int8`: run files (the inputs `run` takes, e.g. observations recorded on
+    /// the robot) on which the f32 model is run to calibrate GPTQ rounding.
+    #[arg(long, value_name = "RUN.safetensors", num_args = 1..)]
+    calibrate: Vec<PathBuf>,
+    /// With `--quant int8`: also calibrate on N synthetic scenes seen through `--camera`.
+    #[arg(long, value_name = "N", requires = "camera", default_value_t = 0)]
+    synthetic_scenes: usize,
+    /// Run file whose `camera_k` and `camera_t` the synthetic scenes are seen through.
+    #[arg(long, value_name = "RUN.safetensors")]
+    camera: Option<PathBuf>,
     /// Output weights file.
     #[arg(short, long, value_name = "MODEL.scdp")]
     output: PathBuf,
@@ -159,6 +169,47 @@ fn synth(args: &SynthArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Seed of `--synthetic-scenes`: the scenes are the same for every conversion.
+const SYNTHETIC_SCENE_SEED: u64 = 7;
+
+/// The recorded and synthetic calibration scenes `convert` was given.
+fn calibration_scenes(
+    args: &ConvertArgs,
+    config: &scdp_engine::ModelConfig,
+) -> anyhow::Result<Vec<weights_tool::run::RunInputs>> {
+    let mut scenes = args
+        .calibrate
+        .iter()
+        .map(|path| weights_tool::run::RunInputs::load(path, config))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    if let (Some(camera), count @ 1..) = (&args.camera, args.synthetic_scenes) {
+        let seen_through = weights_tool::run::RunInputs::load(camera, config)?;
+        scenes.extend(weights_tool::scenes::synthetic_scenes(
+            config,
+            seen_through.intrinsics,
+            seen_through.extrinsics,
+            count,
+            SYNTHETIC_SCENE_SEED,
+        ));
+    }
+    Ok(scenes)
+}
+
+/// int8 with GPTQ rounding calibrated on `scenes`.
+fn calibrated_weights_file(
+    config: &scdp_engine::ModelConfig,
+    state_dict: &weights_tool::StateDict,
+    scenes: &[weights_tool::run::RunInputs],
+) -> anyhow::Result<Vec<u8>> {
+    use weights_tool::lowering::{self, Rounding};
+    let lowered = lowering::lower(config, state_dict)?;
+    let moments = lowering::calibrate(config, &lowered, scenes, true)?;
+    let spinner = spinner("rounding with GPTQ");
+    let stored = lowering::store(config, lowered, Quant::Int8, Rounding::Calibrated(&moments));
+    spinner.finish_and_clear();
+    weights_tool::writer::write_weights_file(config, &stored?)
+}
+
 fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
     let config = load_config(&args.config)?;
     let state_dict = read_with_progress(&args.checkpoint)?;
@@ -179,9 +230,19 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
     })?;
 
     let quant = Quant::from(args.quant);
-    let spinner = spinner(&format!("converting to {quant}"));
-    let bytes = weights_tool::lowering::lower_to_weights_file(&config, &state_dict, quant);
-    spinner.finish_and_clear();
+    let scenes = calibration_scenes(args, &config)?;
+    anyhow::ensure!(
+        scenes.is_empty() || quant == Quant::Int8,
+        "calibration scenes only apply to --quant int8"
+    );
+    let bytes = if scenes.is_empty() {
+        let spinner = spinner(&format!("converting to {quant}"));
+        let bytes = weights_tool::lowering::lower_to_weights_file(&config, &state_dict, quant);
+        spinner.finish_and_clear();
+        bytes
+    } else {
+        calibrated_weights_file(&config, &state_dict, &scenes)
+    };
     let bytes = bytes.with_context(|| format!("converting {}", args.checkpoint.display()))?;
     std::fs::write(&args.output, &bytes)
         .with_context(|| format!("{}: cannot write", args.output.display()))?;
@@ -191,8 +252,21 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
     println!("  storage        {quant}");
     if quant == Quant::Int8 {
         println!(
-            "  int8 scheme    trunk: int8 weights x int8 activations (a scale per pixel); U-Net: int8 weights, f32 activations"
+            "  int8 scheme    trunk: int8 weights x 15-bit activations in two int8 digits (a scale per pixel); U-Net: int8 weights, f32 activations"
         );
+        if scenes.is_empty() {
+            println!(
+                "  rounding       to nearest (no calibration scenes: the fidelity floor of docs/QUANTIZATION.md needs GPTQ, --calibrate or --synthetic-scenes)"
+            );
+        } else {
+            println!(
+                "  rounding       GPTQ, calibrated on {} scenes ({} recorded, {} synthetic), damping {}",
+                scenes.len(),
+                args.calibrate.len(),
+                args.synthetic_scenes,
+                weights_tool::lowering::GPTQ_DAMPING
+            );
+        }
         for (name, why) in weights_tool::lowering::INT8_KEEP_F32 {
             println!("  kept f32       {name}: {why}");
         }

@@ -384,3 +384,72 @@ fn bad_inputs_give_one_clear_error_line() {
         "horizon must be a positive multiple of 4",
     );
 }
+
+/// `convert --quant int8` calibrated on recorded and synthetic scenes writes a weights file
+/// the engine loads, says how it rounded, and differs from round-to-nearest; calibration
+/// options that cannot apply are refused.
+#[test]
+fn convert_calibrates_int8_rounding_on_scenes() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = |name: &str| dir.path().join(name).to_str().unwrap().to_owned();
+    let tiny = repo_file("tests/configs/tiny.toml");
+    let tiny = tiny.to_str().unwrap();
+    let case = repo_file("tests/fixtures/golden/tiny/basic.safetensors");
+    let case = case.to_str().unwrap();
+    let synth = tool(&[
+        "synth",
+        "--config",
+        tiny,
+        "--seed",
+        "1",
+        "-o",
+        &path("w.safetensors"),
+    ]);
+    assert!(synth.status.success(), "{}", text(&synth.stderr));
+    let checkpoint = path("w.safetensors");
+    let convert = |extra: &[&str], out: &str| {
+        let mut args = vec!["convert", &checkpoint, "--config", tiny, "-o", out];
+        args.extend_from_slice(extra);
+        tool(&args)
+    };
+    let calibrated = path("gptq.scdp");
+    let int8 = ["--quant", "int8"];
+    let scenes = [
+        "--calibrate",
+        case,
+        "--synthetic-scenes",
+        "2",
+        "--camera",
+        case,
+    ];
+    let output = convert(&[&int8[..], &scenes[..]].concat(), &calibrated);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    assert!(
+        text(&output.stdout).contains("GPTQ, calibrated on 3 scenes (1 recorded, 2 synthetic)"),
+        "{}",
+        text(&output.stdout)
+    );
+    let nearest = path("rtn.scdp");
+    let output = convert(&int8, &nearest);
+    assert!(text(&output.stdout).contains("rounding       to nearest"));
+    let calibrated = std::fs::read(&calibrated).unwrap();
+    let nearest = std::fs::read(&nearest).unwrap();
+    assert_eq!(calibrated.len(), nearest.len());
+    assert_ne!(calibrated, nearest, "GPTQ changed no weight");
+    let aligned = weights_tool::writer::aligned_copy(&calibrated);
+    scdp_engine::Model::from_bytes(aligned.as_slice()).expect("calibrated file loads");
+
+    let no_camera = convert(
+        &["--quant", "int8", "--synthetic-scenes", "2"],
+        &path("x.scdp"),
+    );
+    assert!(!no_camera.status.success());
+    assert!(
+        text(&no_camera.stderr).contains("--camera"),
+        "{}",
+        text(&no_camera.stderr)
+    );
+    let f32_calibrated = convert(&["--calibrate", case], &path("y.scdp"));
+    assert!(!f32_calibrated.status.success());
+    assert!(text(&f32_calibrated.stderr).contains("only apply to --quant int8"));
+}
