@@ -81,7 +81,12 @@ fn bench_config(c: &mut Criterion, name: &'static str, quant: Quant, backend: Ba
 }
 
 fn benches(c: &mut Criterion) {
-    let int8_backends = [Backend::Scalar, Backend::Avx2, Backend::Avx512];
+    let int8_backends = [
+        Backend::Scalar,
+        Backend::Avx2,
+        Backend::Avx512,
+        Backend::Amx,
+    ];
     for (quant, backends) in [
         (
             Quant::F32,

@@ -113,7 +113,7 @@ fn on_every_backend(
         .warm_up_time(Duration::from_millis(500))
         .measurement_time(Duration::from_secs(2))
         .throughput(Throughput::Elements(macs(shape)));
-    for backend in [Backend::Avx2, Backend::Avx512] {
+    for backend in [Backend::Avx2, Backend::Avx512, Backend::Amx] {
         let Some(kernels) = select(backend) else {
             continue;
         };

@@ -5,6 +5,8 @@
 use scdp_engine::Backend;
 use scdp_engine::kernels::ops::{self, Activation};
 use scdp_engine::kernels::scalar::Scalar;
+#[cfg(target_arch = "x86_64")]
+use scdp_engine::kernels::x86_64::amx::Amx;
 use scdp_engine::kernels::{Accumulate, ConvShape, Kernels};
 
 struct Lcg(u64);
@@ -112,7 +114,7 @@ fn assert_close(found: &[f32], expected: &[f64], magnitude: &[f64], what: &str) 
     }
 }
 
-/// Every implementation this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2,avx512` (as CI sets it) makes
+/// Every implementation this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2,avx512` (as CI sets it, with amx where the CPU lists it) makes
 /// a missing backend a failure instead of a silent skip.
 fn backends() -> Vec<(&'static str, &'static dyn Kernels)> {
     let mut found = Vec::new();
@@ -120,6 +122,7 @@ fn backends() -> Vec<(&'static str, &'static dyn Kernels)> {
         ("scalar", Backend::Scalar),
         ("avx2", Backend::Avx2),
         ("avx512", Backend::Avx512),
+        ("amx", Backend::Amx),
     ] {
         if let Some(kernels) = scdp_engine::kernels::select(backend) {
             assert_eq!(
@@ -788,6 +791,39 @@ impl Int8Case {
     }
 }
 
+impl Int8Case {
+    /// [`Int8Case::run`] on the AMX tiles alone; panics if they did not take the shape.
+    #[cfg(target_arch = "x86_64")]
+    fn run_on_tiles(&self, amx: &Amx, accumulate: Accumulate, initial: &[f32]) -> Vec<f32> {
+        use scdp_engine::kernels::QuantizedRows;
+        let shape = &self.shape;
+        let mut packed = vec![0i8; shape.int8_weight_len()];
+        let channels = (shape.in_channels, shape.out_channels);
+        scdp_engine::kernels::pack_int8_quads(&self.weight, channels.0, channels.1, &mut packed);
+        let input = QuantizedRows {
+            values: &self.values,
+            scales: &self.row_scales,
+            nonnegative: self.nonnegative,
+        };
+        let mut output = initial.to_vec();
+        let parameters = (&packed[..], &self.weight_scales[..], &self.bias[..]);
+        let (weight, weight_scales, bias) = parameters;
+        assert!(
+            amx.conv_int8_on_tiles(
+                shape,
+                &input,
+                weight,
+                weight_scales,
+                bias,
+                &mut output,
+                accumulate
+            ),
+            "the tiles did not take {shape:?}"
+        );
+        output
+    }
+}
+
 fn assert_same_bits(found: &[f32], expected: &[f32], what: &str) {
     assert_eq!(found.len(), expected.len(), "{what}: length");
     for (index, (f, e)) in found.iter().zip(expected).enumerate() {
@@ -862,6 +898,72 @@ fn int8_convolution_is_bit_identical_on_every_backend() {
                         "case {case} {name} {shape:?} {accumulate:?} nonnegative {nonnegative}"
                     ),
                 );
+            }
+        }
+    }
+}
+
+/// The shapes the AMX tiles take (input channels a multiple of 64 up to 512, output
+/// channels a multiple of 32), over the cases they treat differently: activation tiles
+/// loaded in place (rows equally spaced: inside a map, strides 1 and 2, 1x1 kernels over
+/// whole maps) or gathered (padding, tiles wrapping onto the next output row, the short
+/// last tile of a map, maps smaller than a tile), pixel groups of one and several blocks,
+/// both accumulation modes. Bit for bit against the scalar reference on every backend.
+#[test]
+fn int8_convolution_on_matrix_tiles_is_bit_identical() {
+    let mut rng = Lcg(31);
+    let backends = backends();
+    let maps = [
+        (1, 1),
+        (3, 5),
+        (8, 10),
+        (5, 17),
+        (16, 16),
+        (12, 40),
+        (2, 33),
+    ];
+    for case in 0..40 {
+        let kernel = [1, 3][case % 2];
+        let stride = 1 + (case / 2) % 2;
+        let padding = if kernel == 3 { (case / 4) % 2 } else { 0 };
+        let in_channels = [64, 128, 256, 512][(case / 3) % 4];
+        let out_channels = [32, 64, 96][case % 3];
+        let (height, width) = maps[case % maps.len()];
+        if height.min(width) + 2 * padding < kernel {
+            continue;
+        }
+        // Keep the reference quick: the widest inputs on the smaller maps.
+        let (height, width) = if in_channels >= 256 {
+            (height.min(8), width.min(17))
+        } else {
+            (height, width)
+        };
+        let shape = ConvShape {
+            in_height: height,
+            in_width: width,
+            in_channels,
+            out_channels,
+            kernel_height: kernel,
+            kernel_width: kernel,
+            stride,
+            padding_height: padding,
+            padding_width: padding,
+        };
+        let problem = Int8Case::random(&mut rng, shape, true);
+        let initial = rng.vec(shape.output_len());
+        for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
+            let expected = problem.run(&Scalar, accumulate, &initial);
+            for (name, kernels) in &backends {
+                let found = problem.run(*kernels, accumulate, &initial);
+                let what = format!("case {case} {name} {shape:?} {accumulate:?}");
+                assert_same_bits(&found, &expected, &what);
+            }
+            // The tiles themselves, so a shape quietly sent elsewhere cannot pass for them.
+            #[cfg(target_arch = "x86_64")]
+            if let Some(amx) = Amx::detect() {
+                let found = problem.run_on_tiles(amx, accumulate, &initial);
+                let what = format!("case {case} tiles {shape:?} {accumulate:?}");
+                assert_same_bits(&found, &expected, &what);
             }
         }
     }

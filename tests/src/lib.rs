@@ -112,7 +112,7 @@ impl Fixture {
 /// turns a missing backend into a failure instead of a silent skip.
 pub fn available_backends() -> Vec<Backend> {
     let mut found = vec![Backend::Scalar];
-    for backend in [Backend::Avx2, Backend::Avx512] {
+    for backend in [Backend::Avx2, Backend::Avx512, Backend::Amx] {
         if scdp_engine::kernels::select(backend).is_some() {
             found.push(backend);
         }

@@ -35,6 +35,9 @@ pub enum Backend {
     /// x86-64 AVX-512 (F, BW, VL) with VNNI: the int8 and f32 2-D convolutions, the U-Net
     /// kernels and the element-wise operations on ZMM vectors; AVX2 where those do not apply.
     Avx512,
+    /// x86-64 AMX (TILE, INT8): the int8 2-D convolutions on the tile matrix unit, the
+    /// rest as [`Backend::Avx512`]. On Linux, detection asks the OS for the tile registers.
+    Amx,
 }
 
 /// The implementation for `backend`, or `None` when this CPU cannot run it. Detection uses
@@ -44,7 +47,11 @@ pub fn select(backend: Backend) -> Option<&'static dyn Kernels> {
         Backend::Scalar => Some(&scalar::Scalar),
         Backend::Avx2 => avx2(),
         Backend::Avx512 => avx512(),
-        Backend::Auto => avx512().or_else(avx2).or(Some(&scalar::Scalar)),
+        Backend::Amx => amx(),
+        Backend::Auto => amx()
+            .or_else(avx512)
+            .or_else(avx2)
+            .or(Some(&scalar::Scalar)),
     }
 }
 
@@ -56,6 +63,16 @@ fn avx2() -> Option<&'static dyn Kernels> {
 #[cfg(target_arch = "x86_64")]
 fn avx512() -> Option<&'static dyn Kernels> {
     x86_64::avx512::Avx512::detect().map(|kernels| kernels as &'static dyn Kernels)
+}
+
+#[cfg(target_arch = "x86_64")]
+fn amx() -> Option<&'static dyn Kernels> {
+    x86_64::amx::Amx::detect().map(|kernels| kernels as &'static dyn Kernels)
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+fn amx() -> Option<&'static dyn Kernels> {
+    None
 }
 
 #[cfg(not(target_arch = "x86_64"))]

@@ -16,7 +16,7 @@ pub struct Avx512 {
     avx2: &'static Avx2,
 }
 
-static INSTANCE: Avx512 = Avx512 {
+pub(super) static INSTANCE: Avx512 = Avx512 {
     avx2: &super::avx2::INSTANCE,
 };
 

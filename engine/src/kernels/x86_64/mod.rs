@@ -121,6 +121,7 @@ macro_rules! shared_kernels {
     };
 }
 
+pub mod amx;
 pub mod avx2;
 pub mod avx512;
 pub mod avx512_f32;
@@ -207,4 +208,24 @@ pub fn has_avx512_vnni() -> bool {
     // SAFETY: OSXSAVE is set, so XGETBV may be executed.
     let state = unsafe { os_enabled_state() };
     state & 0b1110_0110 == 0b1110_0110
+}
+
+/// AMX-TILE and AMX-INT8 are present and the OS saves the tile configuration and tile data
+/// (XCR0 bits 17 and 18). Whether this process may use them is the OS's to say
+/// ([`amx::Amx::detect`] asks).
+pub fn has_amx_int8() -> bool {
+    // CPUID is safe on x86-64; leaf 1 exists on every such processor.
+    let osxsave = __cpuid(1).ecx & (1 << 27) != 0;
+    if !osxsave || __cpuid(0).eax < 7 {
+        return false;
+    }
+    let features = __cpuid_count(7, 0);
+    let tile = features.edx & (1 << 24) != 0;
+    let int8 = features.edx & (1 << 25) != 0;
+    if !(tile && int8) {
+        return false;
+    }
+    // SAFETY: OSXSAVE is set, so XGETBV may be executed.
+    let state = unsafe { os_enabled_state() };
+    state & (0b11 << 17) == 0b11 << 17
 }

@@ -1,0 +1,155 @@
+//! The AMX backend runs the int8 convolutions on its tiles only for the shapes they take
+//! (`Amx::covers`); any other shape goes, silently and correctly, to the AVX-512 kernels.
+//! The speed of the trunk rests on every int8 layer of the product models being taken:
+//! this encodes a frame of metaworld and panda through a kernel wrapper that records
+//! every dense int8 convolution it is asked for, and checks each one against `covers`.
+#![cfg(target_arch = "x86_64")]
+
+use std::sync::Mutex;
+
+use scdp_engine::kernels::x86_64::amx::Amx;
+use scdp_engine::kernels::{Accumulate, ConvShape, Kernels, QuantizedRows, scalar::Scalar};
+use scdp_engine::{ArenaPlan, Model, ModelConfig, Policy};
+use scdp_tests::synthetic_weights_file_as;
+use weights_tool::Quant;
+use weights_tool::writer::AlignedBytes;
+
+/// The scalar reference, recording the shape of each int8 convolution and whether the
+/// tiles would take it.
+struct Recording {
+    calls: Mutex<Vec<(ConvShape, bool)>>,
+}
+
+impl Kernels for Recording {
+    fn name(&self) -> &'static str {
+        "recording"
+    }
+
+    fn conv(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        Scalar.conv(shape, input, weight, bias, output, accumulate)
+    }
+
+    fn upsample_conv(
+        &self,
+        length: usize,
+        in_channels: usize,
+        out_channels: usize,
+        input: &[f32],
+        weight: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+    ) {
+        Scalar.upsample_conv(
+            length,
+            in_channels,
+            out_channels,
+            input,
+            weight,
+            bias,
+            output,
+        )
+    }
+
+    fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
+        Scalar.matvec(weight, input, base, output)
+    }
+
+    fn conv_int8(
+        &self,
+        shape: &ConvShape,
+        input: &QuantizedRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let covered = Amx::covers(shape, input);
+        self.calls.lock().unwrap().push((*shape, covered));
+        Scalar.conv_int8(
+            shape,
+            input,
+            weight,
+            weight_scales,
+            bias,
+            output,
+            accumulate,
+        )
+    }
+
+    fn conv_weight_int8(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        Scalar.conv_weight_int8(
+            shape,
+            input,
+            weight,
+            weight_scales,
+            bias,
+            output,
+            accumulate,
+        )
+    }
+
+    fn matvec_weight_int8(
+        &self,
+        weight: &[i8],
+        row_scales: &[f32],
+        input: &[f32],
+        base: &[f32],
+        output: &mut [f32],
+    ) {
+        Scalar.matvec_weight_int8(weight, row_scales, input, base, output)
+    }
+}
+
+fn dense_int8_convolutions_of_one_frame(config: ModelConfig) -> Vec<(ConvShape, bool)> {
+    let weights = synthetic_weights_file_as(&config, 1, Quant::Int8).unwrap();
+    let model = Model::from_bytes(weights.as_slice()).unwrap();
+    let recording: &'static Recording = Box::leak(Box::new(Recording {
+        calls: Mutex::new(Vec::new()),
+    }));
+    let mut arena = AlignedBytes::zeroed(ArenaPlan::new(&config).arena_bytes);
+    let mut policy = Policy::with_kernels(&model, arena.as_mut_slice(), recording).unwrap();
+    let pixels = (config.image_height * config.image_width) as usize;
+    // A frame with structure (the values do not matter to which shapes run).
+    let frame: Vec<u8> = (0..3 * pixels).map(|i| (i * 7 % 251) as u8).collect();
+    let state = vec![0.1; config.state_dim as usize];
+    policy.push_observation(&frame, &state).unwrap();
+    recording.calls.lock().unwrap().clone()
+}
+
+#[test]
+fn amx_tiles_take_every_dense_int8_convolution_of_the_product_models() {
+    for (name, config) in [
+        ("metaworld", ModelConfig::METAWORLD),
+        ("panda", ModelConfig::PANDA),
+    ] {
+        let calls = dense_int8_convolutions_of_one_frame(config);
+        // ResNet-18's 19 int8 convolutions (16 3x3, three 1x1 downsamples) at least, each
+        // run once per activation digit.
+        assert!(
+            calls.len() >= 2 * 19,
+            "{name}: only {} int8 convolutions",
+            calls.len()
+        );
+        for (shape, covered) in calls {
+            assert!(covered, "{name}: the AMX tiles do not take {shape:?}");
+        }
+    }
+}
