@@ -12,6 +12,8 @@
 //!   weight row is streamed in memory order and applied to every position; longer sequences
 //!   use the register tile.
 
+use core::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+
 use super::lanes::{Lanes, Ymm, Zmm};
 use crate::kernels::{Accumulate, ConvShape};
 
@@ -230,18 +232,23 @@ unsafe fn convolve<L: Lanes, W: WeightLane>(
             Accumulate::Add => out.iter_mut().zip(bias).for_each(|(o, b)| *o += b),
         }
     }
-    for first in (0..sequence.positions).step_by(POSITIONS) {
-        let mut channel = 0;
-        while channel + 2 * L::WIDTH <= vector_channels {
+    // Channel blocks outside: a block's weights (at most 5 taps x 768 inputs x 32 channels)
+    // come from L3 for the first tile of positions and from L2 for the others; with the
+    // positions outside, every tile of positions streamed the whole kernel from L3.
+    let mut channel = 0;
+    while channel + 2 * L::WIDTH <= vector_channels {
+        for first in (0..sequence.positions).step_by(POSITIONS) {
             // SAFETY: the caller runs on `L`'s CPU; the asserts above bound every row the
             // tile reads or writes; `channel + 2 WIDTH <= out_channels`.
             unsafe {
                 let sums = tile::<L, W, 2>(sequence, input, weight, first, channel);
                 add_scaled::<L, 2>(sequence, &sums, first, channel, scales, output);
             }
-            channel += 2 * L::WIDTH;
         }
-        if channel < vector_channels {
+        channel += 2 * L::WIDTH;
+    }
+    if channel < vector_channels {
+        for first in (0..sequence.positions).step_by(POSITIONS) {
             // SAFETY: as above, with `channel + WIDTH == vector_channels <= out_channels`.
             unsafe {
                 let sums = tile::<L, W, 1>(sequence, input, weight, first, channel);
@@ -438,6 +445,9 @@ unsafe fn tile<L: Lanes, W: WeightLane, const VECS: usize>(
     sums
 }
 
+/// Weight rows [`accumulate`] prefetches ahead of the one it reads.
+const PREFETCH_ROWS: usize = 16;
+
 /// `sums[t] += x[t, c] * w[c]` over `in_channels` input channels, for tile positions
 /// `START .. END` (a compile-time range keeps the accumulators in registers).
 ///
@@ -463,6 +473,11 @@ unsafe fn accumulate<
     // registers (iterator adapters here were left as calls, with the sums in memory).
     #[allow(clippy::needless_range_loop)]
     for c in 0..in_channels {
+        // The weight rows lie `out_channels` apart, one cache line each: ask for the line
+        // `PREFETCH_ROWS` ahead. A hint only (it never faults), hence the wrapping address.
+        let ahead = weights.wrapping_add((c + PREFETCH_ROWS) * weight_step);
+        // SAFETY: `prefetcht0` reads nothing architecturally; SSE is part of x86-64.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(ahead.cast()) };
         // SAFETY (this block): row `c` of the weights holds `VECS WIDTH` readable values, the
         // input row of each position `in_channels`; the caller runs on `L`'s CPU.
         let lanes: [L::Vector; VECS] = core::array::from_fn(|vec| unsafe {
