@@ -70,9 +70,21 @@ pub fn available() -> Vec<Throughput> {
                 run: x86::dpbusd_zmm,
             });
         }
+        // The engine's own detection: CPUID, XCR0 and, on Linux, the OS's permission.
+        if scdp_engine::kernels::select(scdp_engine::Backend::Amx).is_some() {
+            loops.push(Throughput {
+                name: "int8 AMX tdpbusd (16 x 16 x 64 = 16384 MAC)",
+                macs_per_iteration: (AMX_SUMS * 16 * 16 * 64) as u64,
+                run: x86::tdpbusd_tiles,
+            });
+        }
     }
     loops
 }
+
+/// Independent sum tiles of the AMX loop: the 2 x 2 blocking of the engine's kernel (four
+/// sum tiles, two activation and two weight tiles: all eight tile registers).
+pub const AMX_SUMS: usize = 4;
 
 /// The value every loop's result must equal after `iterations`: each MAC adds exactly 1
 /// (operands are 1), summed over all chains and lanes.
@@ -321,6 +333,74 @@ mod x86 {
             unsafe { _mm512_storeu_si512(out.as_mut_ptr().cast(), *chain) };
         }
         sum_i32(&lanes)
+    }
+
+    /// `tdpbusd` on [`AMX_SUMS`](super::AMX_SUMS) independent sum tiles from two
+    /// activation and two weight tiles of ones, as the engine's block uses them.
+    pub fn tdpbusd_tiles(iterations: u64) -> f64 {
+        assert!(scdp_engine::kernels::select(scdp_engine::Backend::Amx).is_some());
+        #[repr(C, align(64))]
+        struct Tile([u8; 1024]);
+        let mut config = Tile([0; 1024]);
+        config.0[0] = 1;
+        for tile in 0..8 {
+            config.0[16 + 2 * tile] = 64;
+            config.0[48 + tile] = 16;
+        }
+        let ones = Tile([opaque_one_i8() as u8; 1024]);
+        let mut sums = [
+            Tile([0; 1024]),
+            Tile([0; 1024]),
+            Tile([0; 1024]),
+            Tile([0; 1024]),
+        ];
+        // SAFETY: the engine detected AMX and obtained the OS's permission (asserted above);
+        // the configuration is palette 1 with eight tiles of 16 rows x 64 bytes; every tile
+        // load and store covers one 1 KB buffer at a 64-byte stride; nothing else in this
+        // function touches the tile registers between the configuration and the release.
+        unsafe {
+            core::arch::asm!("ldtilecfg [{}]", in(reg) config.0.as_ptr(), options(nostack));
+            core::arch::asm!(
+                "tilezero tmm0",
+                "tilezero tmm1",
+                "tilezero tmm2",
+                "tilezero tmm3",
+                "tileloadd tmm4, [{ones} + {stride}]",
+                "tileloadd tmm5, [{ones} + {stride}]",
+                "tileloadd tmm6, [{ones} + {stride}]",
+                "tileloadd tmm7, [{ones} + {stride}]",
+                ones = in(reg) ones.0.as_ptr(),
+                stride = in(reg) 64usize,
+                options(nostack, readonly, preserves_flags),
+            );
+            for _ in 0..iterations {
+                core::arch::asm!(
+                    "tdpbusd tmm0, tmm4, tmm6",
+                    "tdpbusd tmm1, tmm4, tmm7",
+                    "tdpbusd tmm2, tmm5, tmm6",
+                    "tdpbusd tmm3, tmm5, tmm7",
+                    options(nomem, nostack, preserves_flags),
+                );
+            }
+            let [s0, s1, s2, s3] = &mut sums;
+            core::arch::asm!(
+                "tilestored [{s0} + {stride}], tmm0",
+                "tilestored [{s1} + {stride}], tmm1",
+                "tilestored [{s2} + {stride}], tmm2",
+                "tilestored [{s3} + {stride}], tmm3",
+                "tilerelease",
+                s0 = in(reg) s0.0.as_mut_ptr(),
+                s1 = in(reg) s1.0.as_mut_ptr(),
+                s2 = in(reg) s2.0.as_mut_ptr(),
+                s3 = in(reg) s3.0.as_mut_ptr(),
+                stride = in(reg) 64usize,
+                options(nostack, preserves_flags),
+            );
+        }
+        sums.iter()
+            .flat_map(|tile| tile.0.chunks_exact(4))
+            .map(|sum| i32::from_le_bytes([sum[0], sum[1], sum[2], sum[3]]) as f64)
+            .sum()
     }
 
     pub fn sum_ymm(values: &[u32]) -> u32 {
