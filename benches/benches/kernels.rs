@@ -9,9 +9,7 @@ use std::time::Duration;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use scdp_engine::Backend;
-use scdp_engine::kernels::{
-    Accumulate, ConvShape, Kernels, QuantizedRows, pack_int8_quads, select,
-};
+use scdp_engine::kernels::{Accumulate, ConvShape, DigitRows, Kernels, pack_int8_quads, select};
 
 /// `(name, shape)` of the distinct int8 convolutions of one panda frame.
 fn panda_trunk_layers() -> [(&'static str, ConvShape); 8] {
@@ -67,7 +65,8 @@ impl Lcg {
 fn benches(c: &mut Criterion) {
     let mut rng = Lcg(7);
     for (name, shape) in panda_trunk_layers() {
-        let values: Vec<i8> = (0..shape.input_len())
+        // Both digit planes, back to back, as the engine quantizes a ReLU output.
+        let values: Vec<i8> = (0..2 * shape.input_len())
             .map(|_| (rng.next() % 128) as i8)
             .collect();
         let scales: Vec<f32> = (0..shape.in_height * shape.in_width)
@@ -81,11 +80,7 @@ fn benches(c: &mut Criterion) {
         let weight_scales = vec![1e-3f32; shape.out_channels];
         let bias = vec![0.5f32; shape.out_channels];
         let mut output = vec![0.0f32; shape.output_len()];
-        let input = QuantizedRows {
-            values: &values,
-            scales: &scales,
-            nonnegative: true,
-        };
+        let input = DigitRows::from_planes(&values, &scales, true);
         on_every_backend(c, format!("conv_int8/{name}"), &shape, |kernels| {
             kernels.conv_int8(
                 &shape,

@@ -48,11 +48,10 @@ pub struct ArenaPlan {
     /// FiLM scale and bias of the residual block being run.
     pub film: usize,
     /// Int8 weights only: a trunk layer's input quantized to two digit planes (twice the
-    /// bytes of the largest trunk activation, in f32 units), one scale per pixel of it,
-    /// and `2 out_channels` values of per-layer scratch (`kernels::QuantizeScratch`).
+    /// bytes of the largest trunk activation, in f32 units) and one scale per pixel of it
+    /// (`kernels::QuantizeScratch`).
     pub quantized: usize,
     pub quantized_scales: usize,
-    pub quantized_channels: usize,
 
     /// Shared scratch: the larger of the two phases below.
     pub scratch: usize,
@@ -81,7 +80,6 @@ impl ArenaPlan {
                 taps: saturate(plan.frame.taps),
                 tap_scales: saturate(plan.frame.tap_scales),
                 computed: saturate(plan.frame.computed),
-                channels: saturate(plan.frame.channels),
                 total: saturate(plan.frame.total),
             },
             states: saturate(plan.states),
@@ -93,7 +91,6 @@ impl ArenaPlan {
             film: saturate(plan.film),
             quantized: saturate(plan.quantized),
             quantized_scales: saturate(plan.quantized_scales),
-            quantized_channels: saturate(plan.quantized_channels),
             scratch: saturate(plan.scratch),
             trunk_activation: saturate(plan.trunk_activation),
             trunk_stem: saturate(plan.trunk_stem),
@@ -115,15 +112,13 @@ impl ArenaPlan {
 /// - `taps`: for those levels, the projection's input C(level + 1), `[H_n, W_n, C_n]`, in
 ///   f32, or in int8 (bytes, same element offsets) for int8 weights;
 /// - `tap_scales`: for int8 weights, one scale per cell of those taps;
-/// - `computed`: one bit per cell of those levels (u32 words), set once the cell is;
-/// - `channels`: scratch of `2 d` values for the int8 projection of one cell.
+/// - `computed`: one bit per cell of those levels (u32 words), set once the cell is.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct FrameLayout {
     pub maps: usize,
     pub taps: usize,
     pub tap_scales: usize,
     pub computed: usize,
-    pub channels: usize,
     pub total: usize,
 }
 
@@ -132,7 +127,6 @@ struct FrameLengths {
     taps: u64,
     tap_scales: u64,
     computed: u64,
-    channels: u64,
     total: u64,
 }
 
@@ -158,14 +152,12 @@ impl FrameLengths {
         let taps = aligned(taps);
         let tap_scales = aligned(on_demand_cells);
         let computed = aligned(on_demand_words);
-        let channels = aligned(2 * config.feature_dim as u64);
         FrameLengths {
             maps,
             taps,
             tap_scales,
             computed,
-            channels,
-            total: maps + taps + tap_scales + computed + channels,
+            total: maps + taps + tap_scales + computed,
         }
     }
 }
@@ -204,7 +196,6 @@ struct Lengths {
     film: u64,
     quantized: u64,
     quantized_scales: u64,
-    quantized_channels: u64,
     scratch: u64,
     trunk_activation: u64,
     trunk_stem: u64,
@@ -277,8 +268,6 @@ impl Lengths {
         // buffer, and their rows are at most the image's pixels.
         let quantized = aligned((2 * trunk_activation).div_ceil(4));
         let quantized_scales = aligned(pixels);
-        let widest_trunk_output = max(config.stage_channels(3) as u64, config.feature_dim as u64);
-        let quantized_channels = aligned(2 * widest_trunk_output);
         let persistent = features
             + states
             + anchors
@@ -288,8 +277,7 @@ impl Lengths {
             + activated_cond
             + film
             + quantized
-            + quantized_scales
-            + quantized_channels;
+            + quantized_scales;
         let scratch = max(trunk, unet);
         Lengths {
             arena_bytes: 4 * (persistent + scratch),
@@ -305,7 +293,6 @@ impl Lengths {
             film,
             quantized,
             quantized_scales,
-            quantized_channels,
             scratch,
             trunk_activation,
             trunk_stem,

@@ -194,7 +194,6 @@ impl<'w, 'a> Policy<'w, 'a> {
             quantized: QuantizeScratch {
                 values: bytemuck::cast_slice_mut(carver.take(plan.quantized)),
                 scales: carver.take(plan.quantized_scales),
-                channels: carver.take(plan.quantized_channels),
             },
             scratch: carver.take(plan.scratch),
         }

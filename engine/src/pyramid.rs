@@ -57,7 +57,6 @@ pub struct FrameStore<'a> {
     pub taps: &'a mut [f32],
     pub tap_scales: &'a mut [f32],
     pub computed: &'a mut [u32],
-    pub channels: &'a mut [f32],
 }
 
 /// One level's part of a [`FrameStore`]; the last three are empty for a dense level.
@@ -66,7 +65,6 @@ struct LevelStore<'s> {
     taps: &'s mut [f32],
     tap_scales: &'s mut [f32],
     computed: &'s mut [u32],
-    channels: &'s mut [f32],
 }
 
 impl<'a> FrameStore<'a> {
@@ -75,13 +73,12 @@ impl<'a> FrameStore<'a> {
         let (maps, rest) = region.split_at_mut(layout.maps);
         let (taps, rest) = rest.split_at_mut(layout.taps);
         let (tap_scales, rest) = rest.split_at_mut(layout.tap_scales);
-        let (computed, rest) = rest.split_at_mut(layout.computed);
+        let computed = &mut rest[..layout.computed];
         FrameStore {
             maps,
             taps,
             tap_scales,
             computed: bytemuck::cast_slice_mut(computed),
-            channels: &mut rest[..layout.channels],
         }
     }
 
@@ -97,7 +94,6 @@ impl<'a> FrameStore<'a> {
                 taps: &mut [],
                 tap_scales: &mut [],
                 computed: &mut [],
-                channels: &mut [],
             };
         }
         LevelStore {
@@ -105,7 +101,6 @@ impl<'a> FrameStore<'a> {
             taps: &mut self.taps[tap_at..][..cells * config.pyramid_channels(level)],
             tap_scales: &mut self.tap_scales[cell_at..][..cells],
             computed: &mut self.computed[word_at..][..cells.div_ceil(32)],
-            channels: &mut *self.channels,
         }
     }
 
@@ -153,7 +148,6 @@ impl<'a> FrameStore<'a> {
                 (store.taps, store.tap_scales),
                 (&projection.weight, projection.bias),
                 (row, column),
-                store.channels,
                 &mut store.map[cell * feature_dim..][..feature_dim],
             );
             store.computed[word] |= bit;

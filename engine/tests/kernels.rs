@@ -7,7 +7,7 @@ use scdp_engine::kernels::ops::{self, Activation};
 use scdp_engine::kernels::scalar::Scalar;
 #[cfg(target_arch = "x86_64")]
 use scdp_engine::kernels::x86_64::amx::Amx;
-use scdp_engine::kernels::{Accumulate, ConvShape, Kernels};
+use scdp_engine::kernels::{Accumulate, ConvShape, DigitRows, Kernels};
 
 struct Lcg(u64);
 
@@ -430,9 +430,30 @@ fn random_i8(rng: &mut Lcg, len: usize) -> Vec<i8> {
         .collect()
 }
 
+/// Random 15-bit activation codes in -16383..=16383 (0..=16383 when `nonnegative`), with
+/// zeros and the extremes, as `quantize_split_signs` writes them.
+fn random_codes(rng: &mut Lcg, len: usize, nonnegative: bool) -> Vec<i32> {
+    (0..len)
+        .map(|_| {
+            let code = match rng.below(8) {
+                0 => 0,
+                1 => 16383,
+                _ => (rng.next() * 16383.0).round() as i32,
+            };
+            if nonnegative { code.abs() } else { code }
+        })
+        .collect()
+}
+
+/// The two digit planes of `codes`, back to back (`code = 128 high + low`, `low` in 0..128).
+fn digit_planes(codes: &[i32]) -> Vec<i8> {
+    let high = codes.iter().map(|&code| (code >> 7) as i8);
+    let low = codes.iter().map(|&code| (code & 127) as i8);
+    high.chain(low).collect()
+}
+
 #[test]
 fn int8_convolution_sums_exactly_per_tap_then_scales() {
-    use scdp_engine::kernels::QuantizedRows;
     let mut rng = Lcg(17);
     for case in 0..40 {
         let kernel = [1, 3, 5][rng.below(3)];
@@ -447,7 +468,8 @@ fn int8_convolution_sums_exactly_per_tap_then_scales() {
             stride,
             padding,
         );
-        let values = random_i8(&mut rng, shape.input_len());
+        let values = random_codes(&mut rng, shape.input_len(), false);
+        let planes = digit_planes(&values);
         let rows = shape.in_height * shape.in_width;
         let row_scales: Vec<f32> = (0..rows).map(|_| 0.01 + rng.next().abs()).collect();
         let weight = random_i8(&mut rng, shape.weight_len());
@@ -458,11 +480,7 @@ fn int8_convolution_sums_exactly_per_tap_then_scales() {
             .collect();
         let bias = rng.vec(out_channels);
         let mut output = vec![f32::NAN; shape.output_len()];
-        let input = QuantizedRows {
-            values: &values,
-            scales: &row_scales,
-            nonnegative: false,
-        };
+        let input = DigitRows::from_planes(&planes, &row_scales, false);
         Scalar.conv_int8(
             &shape,
             &input,
@@ -724,7 +742,8 @@ fn symmetric_quantization_round_trips_within_half_a_step() {
 /// One int8 convolution problem: quantized input, kernel in the engine's layout, parameters.
 struct Int8Case {
     shape: ConvShape,
-    values: Vec<i8>,
+    /// 15-bit activation codes, `[H, W, in]`.
+    values: Vec<i32>,
     row_scales: Vec<f32>,
     nonnegative: bool,
     /// `[kh, kw, in, out]`, before packing.
@@ -735,21 +754,9 @@ struct Int8Case {
 
 impl Int8Case {
     fn random(rng: &mut Lcg, shape: ConvShape, nonnegative: bool) -> Self {
-        let values = if nonnegative {
-            // ReLU outputs: many zeros, and the extremes.
-            (0..shape.input_len())
-                .map(|_| match rng.below(8) {
-                    0 => 0,
-                    1 => 127,
-                    _ => (rng.next().abs() * 127.0).round() as i8,
-                })
-                .collect()
-        } else {
-            random_i8(rng, shape.input_len())
-        };
         let rows = shape.in_height * shape.in_width;
         Int8Case {
-            values,
+            values: random_codes(rng, shape.input_len(), nonnegative),
             row_scales: (0..rows).map(|_| 0.01 + rng.next().abs()).collect(),
             nonnegative,
             weight: random_i8(rng, shape.weight_len()),
@@ -763,23 +770,11 @@ impl Int8Case {
 
     /// The output of `kernels`, starting from `initial` (for [`Accumulate::Add`]).
     fn run(&self, kernels: &dyn Kernels, accumulate: Accumulate, initial: &[f32]) -> Vec<f32> {
-        use scdp_engine::kernels::QuantizedRows;
-        let shape = &self.shape;
-        let mut packed = vec![0i8; shape.int8_weight_len()];
-        scdp_engine::kernels::pack_int8_quads(
-            &self.weight,
-            shape.in_channels,
-            shape.out_channels,
-            &mut packed,
-        );
-        let input = QuantizedRows {
-            values: &self.values,
-            scales: &self.row_scales,
-            nonnegative: self.nonnegative,
-        };
+        let (packed, planes) = self.packed();
+        let input = DigitRows::from_planes(&planes, &self.row_scales, self.nonnegative);
         let mut output = initial.to_vec();
         kernels.conv_int8(
-            shape,
+            &self.shape,
             &input,
             &packed,
             &self.weight_scales,
@@ -789,32 +784,32 @@ impl Int8Case {
         );
         output
     }
+
+    /// The kernel in the quad layout and the codes as digit planes.
+    fn packed(&self) -> (Vec<i8>, Vec<i8>) {
+        let shape = &self.shape;
+        let mut packed = vec![0i8; shape.int8_weight_len()];
+        let channels = (shape.in_channels, shape.out_channels);
+        scdp_engine::kernels::pack_int8_quads(&self.weight, channels.0, channels.1, &mut packed);
+        (packed, digit_planes(&self.values))
+    }
 }
 
 impl Int8Case {
     /// [`Int8Case::run`] on the AMX tiles alone; panics if they did not take the shape.
     #[cfg(target_arch = "x86_64")]
     fn run_on_tiles(&self, amx: &Amx, accumulate: Accumulate, initial: &[f32]) -> Vec<f32> {
-        use scdp_engine::kernels::QuantizedRows;
-        let shape = &self.shape;
-        let mut packed = vec![0i8; shape.int8_weight_len()];
-        let channels = (shape.in_channels, shape.out_channels);
-        scdp_engine::kernels::pack_int8_quads(&self.weight, channels.0, channels.1, &mut packed);
-        let input = QuantizedRows {
-            values: &self.values,
-            scales: &self.row_scales,
-            nonnegative: self.nonnegative,
-        };
+        let (packed, planes) = self.packed();
+        let input = DigitRows::from_planes(&planes, &self.row_scales, self.nonnegative);
         let mut output = initial.to_vec();
-        let parameters = (&packed[..], &self.weight_scales[..], &self.bias[..]);
-        let (weight, weight_scales, bias) = parameters;
+        let shape = &self.shape;
         assert!(
             amx.conv_int8_on_tiles(
                 shape,
                 &input,
-                weight,
-                weight_scales,
-                bias,
+                &packed,
+                &self.weight_scales,
+                &self.bias,
                 &mut output,
                 accumulate
             ),
@@ -999,15 +994,17 @@ fn int8_convolution_is_exact_at_the_extremes() {
         }
         let problem = Int8Case {
             shape,
-            values: vec![127; shape.input_len()],
+            values: vec![16383; shape.input_len()],
             row_scales: vec![1.0; 15],
             nonnegative: true,
             weight,
             weight_scales: vec![1.0; out_channels],
             bias: vec![0.0; out_channels],
         };
-        let full = (127 * 127 * in_channels) as f32; // 8,258,048 < 2^24: exact in f32
-        let lowest = -((128 * 127 * in_channels) as f32); // -8,323,072, exact too
+        // 16383 x 127 x 512 = 2,080,641 x 2^9 and 16383 x 128 x 512 = 16383 x 2^16: a
+        // mantissa under 2^24 and a power of two, so exact in f32.
+        let full = (16383 * 127 * in_channels) as f32;
+        let lowest = -((16383 * 128 * in_channels) as f32);
         for (name, kernels) in backends() {
             let found = problem.run(
                 kernels,
@@ -1042,13 +1039,11 @@ fn quantizing_reports_whether_every_value_is_nonnegative() {
         for (input, expected) in [(&relu, true), (&signed, false), (&tiny_negative, true)] {
             let mut values = vec![0i8; 2 * input.len()];
             let mut scales = vec![0.0f32; rows];
-            let mut channels = vec![0.0f32; 16];
             let mut scratch = QuantizeScratch {
                 values: &mut values,
                 scales: &mut scales,
-                channels: &mut channels,
             };
-            let (digits, _) = scratch.quantize(kernels, input, row_len);
+            let digits = scratch.quantize(kernels, input, row_len);
             assert_eq!(digits.high.nonnegative, expected, "{name}");
             assert_eq!(
                 digits.high.nonnegative,
@@ -1140,7 +1135,6 @@ fn elementwise_operations_are_bit_identical_on_every_backend() {
 /// widths that leave partial tiles.
 #[test]
 fn single_pixel_convolution_equals_the_dense_kernel_bit_for_bit() {
-    use scdp_engine::kernels::QuantizedRows;
     for (name, kernels) in backends() {
         let mut rng = Lcg(31);
         for case in 0..40 {
@@ -1182,17 +1176,10 @@ fn single_pixel_convolution_equals_the_dense_kernel_bit_for_bit() {
                 Accumulate::Overwrite,
             );
             // ReLU-like inputs, flagged, so the SIMD int8 tiles run.
-            let values: Vec<i8> = random_i8(&mut rng, shape.input_len())
-                .iter()
-                .map(|v| v.saturating_abs())
-                .collect();
+            let planes = digit_planes(&random_codes(&mut rng, shape.input_len(), true));
             let rows = shape.in_height * shape.in_width;
             let row_scales: Vec<f32> = (0..rows).map(|_| 0.01 + rng.next().abs()).collect();
-            let quantized = QuantizedRows {
-                values: &values,
-                scales: &row_scales,
-                nonnegative: true,
-            };
+            let quantized = DigitRows::from_planes(&planes, &row_scales, true);
             let weight_int8 = random_i8(&mut rng, shape.int8_weight_len());
             let weight_scales: Vec<f32> = (0..out_channels)
                 .map(|_| 0.001 + rng.next().abs() * 0.01)
@@ -1206,16 +1193,6 @@ fn single_pixel_convolution_equals_the_dense_kernel_bit_for_bit() {
                 &bias,
                 &mut dense_int8,
                 Accumulate::Overwrite,
-            );
-            let mut dense_int8_twice = dense_int8.clone();
-            kernels.conv_int8(
-                &shape,
-                &quantized,
-                &weight_int8,
-                &weight_scales,
-                &bias,
-                &mut dense_int8_twice,
-                Accumulate::Add,
             );
             for y in 0..shape.out_height() {
                 for x in 0..shape.out_width() {
@@ -1237,25 +1214,10 @@ fn single_pixel_convolution_equals_the_dense_kernel_bit_for_bit() {
                         &bias,
                         (y, x),
                         &mut pixel,
-                        Accumulate::Overwrite,
                     );
                     assert!(
                         same(&pixel, &dense_int8[at..at + out_channels]),
                         "{name} case {case} int8 pixel ({y}, {x}) of {shape:?}"
-                    );
-                    kernels.conv_int8_pixel(
-                        &shape,
-                        &quantized,
-                        &weight_int8,
-                        &weight_scales,
-                        &bias,
-                        (y, x),
-                        &mut pixel,
-                        Accumulate::Add,
-                    );
-                    assert!(
-                        same(&pixel, &dense_int8_twice[at..at + out_channels]),
-                        "{name} case {case} int8 pixel added ({y}, {x}) of {shape:?}"
                     );
                 }
             }

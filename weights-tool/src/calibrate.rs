@@ -16,7 +16,7 @@ use faer::{Accum, Mat, Par};
 use indicatif::{ProgressBar, ProgressStyle};
 use scdp_engine::format::WeightsFile;
 use scdp_engine::kernels::ops::Activation;
-use scdp_engine::kernels::{self, Accumulate, Backend, ConvShape, Kernels, QuantizedRows};
+use scdp_engine::kernels::{self, Accumulate, Backend, ConvShape, DigitRows, Kernels};
 use scdp_engine::{ArenaPlan, Camera, Model, ModelConfig, Noise, Policy};
 
 use crate::run::RunInputs;
@@ -183,24 +183,15 @@ impl Kernels for Recorder {
     fn conv_int8_pixel(
         &self,
         shape: &ConvShape,
-        input: &QuantizedRows<'_>,
+        input: &DigitRows<'_>,
         weight: &[i8],
         weight_scales: &[f32],
         bias: &[f32],
         pixel: (usize, usize),
         output: &mut [f32],
-        accumulate: Accumulate,
     ) {
-        self.inner.conv_int8_pixel(
-            shape,
-            input,
-            weight,
-            weight_scales,
-            bias,
-            pixel,
-            output,
-            accumulate,
-        );
+        self.inner
+            .conv_int8_pixel(shape, input, weight, weight_scales, bias, pixel, output);
     }
 
     fn upsample_conv(
@@ -235,7 +226,7 @@ impl Kernels for Recorder {
     fn conv_int8(
         &self,
         shape: &ConvShape,
-        input: &QuantizedRows<'_>,
+        input: &DigitRows<'_>,
         weight: &[i8],
         weight_scales: &[f32],
         bias: &[f32],

@@ -272,26 +272,24 @@ pub trait Kernels: Sync {
         );
     }
 
-    /// [`conv_pixel`](Self::conv_pixel) for [`conv_int8`](Self::conv_int8), which may also
-    /// add to `output` (the low digits of split activations, [`conv_digits`]).
+    /// [`conv_pixel`](Self::conv_pixel) for [`conv_int8`](Self::conv_int8).
     #[allow(clippy::too_many_arguments)]
     fn conv_int8_pixel(
         &self,
         shape: &ConvShape,
-        input: &QuantizedRows<'_>,
+        input: &DigitRows<'_>,
         weight: &[i8],
         weight_scales: &[f32],
         bias: &[f32],
         pixel: (usize, usize),
         output: &mut [f32],
-        accumulate: Accumulate,
     ) {
         scalar::conv_int8_pixel(
             shape,
             input,
             (weight, weight_scales, bias),
             output,
-            accumulate,
+            Accumulate::Overwrite,
             pixel,
             0..shape.out_channels,
         );
@@ -314,20 +312,23 @@ pub trait Kernels: Sync {
     /// `output[r] = base[r] + sum_c weight[r, c] input[c]` for a row-major `[rows, cols]`.
     fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]);
 
-    /// [`conv`](Self::conv) on int8 data with one activation scale per input position, the
+    /// [`conv`](Self::conv) on 15-bit activation codes, two int8 digit planes per input
+    /// position (`code = 128 high + low`, [`DigitRows`]) with one scale per position, the
     /// kernel in the quad layout of [`int8_quad_index`] (`shape.int8_weight_len()` values).
     /// For each output position and kernel tap inside the input, the integer sum
-    /// `p[o] = sum_c q_in[c] q_w[c, o]` is exact in i32 (the part every implementation must
-    /// reproduce bit for bit); then `acc[o] += p[o] as f32 * row_scale(tap's input position)`
-    /// (a product, then a sum: two roundings, not a fused multiply-add) over the taps in kernel
-    /// order from `acc[o] = 0`, and `output[o] = acc[o] * weight_scales[o] + bias[o]` (with
-    /// [`Accumulate::Add`], `output[o] += that`), again unfused. Every implementation
-    /// therefore gives bit-identical outputs.
+    /// `p[o] = sum_c code[c] q_w[c, o]` is exact in i32 (in channels up to
+    /// [`MAX_DIGIT_CHANNELS`]; the part every implementation must reproduce bit for bit, and
+    /// may compute as `128 sum high q_w + sum low q_w`); then
+    /// `acc[o] += p[o] as f32 * row_scale(tap's input position)` (a product, then a sum: two
+    /// roundings, not a fused multiply-add) over the taps in kernel order from `acc[o] = 0`,
+    /// and `output[o] = acc[o] * weight_scales[o] + bias[o]` (with [`Accumulate::Add`],
+    /// `output[o] += that`), again unfused. Every implementation therefore gives
+    /// bit-identical outputs.
     #[allow(clippy::too_many_arguments)]
     fn conv_int8(
         &self,
         shape: &ConvShape,
-        input: &QuantizedRows<'_>,
+        input: &DigitRows<'_>,
         weight: &[i8],
         weight_scales: &[f32],
         bias: &[f32],
@@ -407,14 +408,17 @@ pub struct QuantizedRows<'a> {
     pub nonnegative: bool,
 }
 
+/// Input channels up to which the exact per-tap sum of [`Kernels::conv_int8`] fits i32:
+/// `|code| <= 16383`, `|q_w| <= 128`, `16383 x 128 x 1024 < 2^31`. ResNet-18's widest layer
+/// has 512.
+pub const MAX_DIGIT_CHANNELS: usize = 1024;
+
 /// Arena space for quantizing one layer input: its two digit planes (the high digits, then
-/// the low ones), one scale per row, and `2 out_channels` values per layer for the high
-/// pass's weight scales and the low pass's zero bias.
+/// the low ones) and one scale per row.
 #[derive(Debug)]
 pub struct QuantizeScratch<'a> {
     pub values: &'a mut [i8],
     pub scales: &'a mut [f32],
-    pub channels: &'a mut [f32],
 }
 
 /// Activations quantized to 15-bit codes in two int8 digit planes sharing their row scales
@@ -443,98 +447,32 @@ impl<'a> DigitRows<'a> {
             },
         }
     }
+
+    /// Every code is nonnegative (both digits in 0..=127, readable as u8).
+    pub fn nonnegative(&self) -> bool {
+        self.high.nonnegative
+    }
+
+    /// The row scales, shared by both planes.
+    pub fn scales(&self) -> &'a [f32] {
+        self.high.scales
+    }
 }
 
 impl QuantizeScratch<'_> {
     /// Quantizes `input`, rows of `row_len` values (the activation scheme of int8 weights
-    /// files, [`ops::quantize_split_signs`]), and returns the view and the per-layer
-    /// channel scratch.
+    /// files, [`ops::quantize_split_signs`]), and returns the view.
     pub fn quantize(
         &mut self,
         kernels: &dyn Kernels,
         input: &[f32],
         row_len: usize,
-    ) -> (DigitRows<'_>, &mut [f32]) {
+    ) -> DigitRows<'_> {
         let rows = input.len() / row_len;
         let (high, low) = self.values[..2 * input.len()].split_at_mut(input.len());
         let scales = &mut self.scales[..rows];
         let nonnegative = kernels.quantize_rows(input, row_len, (high, low), scales);
-        let values = &self.values[..2 * input.len()];
-        (
-            DigitRows::from_planes(values, scales, nonnegative),
-            &mut *self.channels,
-        )
-    }
-}
-
-/// The int8 convolution of split activations: the high digits with the weight scales times
-/// [`ops::DIGIT_BASE`] (exact: a power of two), then the low digits added with a zero bias.
-/// `channels` holds `2 out_channels` values of scratch.
-#[allow(clippy::too_many_arguments)]
-fn conv_digits(
-    kernels: &dyn Kernels,
-    shape: &ConvShape,
-    digits: &DigitRows<'_>,
-    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
-    channels: &mut [f32],
-    pixel: Option<(usize, usize)>,
-    output: &mut [f32],
-    accumulate: Accumulate,
-) {
-    let out_channels = shape.out_channels;
-    let (high_scales, zero_bias) = channels[..2 * out_channels].split_at_mut(out_channels);
-    for (high, &scale) in high_scales.iter_mut().zip(weight_scales) {
-        *high = scale * ops::DIGIT_BASE;
-    }
-    zero_bias.fill(0.0);
-    let high_scales = &*high_scales;
-    let zero_bias = &*zero_bias;
-    match pixel {
-        None => {
-            kernels.conv_int8(
-                shape,
-                &digits.high,
-                weight,
-                high_scales,
-                bias,
-                output,
-                accumulate,
-            );
-            let add = Accumulate::Add;
-            kernels.conv_int8(
-                shape,
-                &digits.low,
-                weight,
-                weight_scales,
-                zero_bias,
-                output,
-                add,
-            );
-        }
-        Some(pixel) => {
-            let (high, low) = (&digits.high, &digits.low);
-            kernels.conv_int8_pixel(
-                shape,
-                high,
-                weight,
-                high_scales,
-                bias,
-                pixel,
-                output,
-                accumulate,
-            );
-            let add = Accumulate::Add;
-            kernels.conv_int8_pixel(
-                shape,
-                low,
-                weight,
-                weight_scales,
-                zero_bias,
-                pixel,
-                output,
-                add,
-            );
-        }
+        DigitRows::from_planes(&self.values[..2 * input.len()], scales, nonnegative)
     }
 }
 
@@ -565,11 +503,8 @@ pub fn convolve(
     match (*weight, activations) {
         (Weight::F32(values), _) => kernels.conv(shape, input, values, bias, output, accumulate),
         (Weight::Int8 { values, scales }, Activations::Int8(scratch)) => {
-            let (digits, channels) = scratch.quantize(kernels, input, shape.in_channels);
-            let parameters = (values, scales, bias);
-            conv_digits(
-                kernels, shape, &digits, parameters, channels, None, output, accumulate,
-            );
+            let digits = scratch.quantize(kernels, input, shape.in_channels);
+            kernels.conv_int8(shape, &digits, values, scales, bias, output, accumulate)
         }
         (Weight::Int8 { values, scales }, Activations::F32) => {
             kernels.conv_weight_int8(shape, input, values, scales, bias, output, accumulate)
@@ -601,16 +536,13 @@ pub fn store_input(
 }
 
 /// Output pixel `pixel` of [`convolve`] with [`Accumulate::Overwrite`], into `output`,
-/// from an input kept by [`store_input`] (`values`, `scales` as it left them); `channels`
-/// is scratch of `2 out_channels` values for int8 weights.
-#[allow(clippy::too_many_arguments)]
+/// from an input kept by [`store_input`] (`values`, `scales` as it left them).
 pub fn convolve_pixel(
     kernels: &dyn Kernels,
     shape: &ConvShape,
     (values, scales): (&[f32], &[f32]),
     (weight, bias): (&Weight<'_>, &[f32]),
     pixel: (usize, usize),
-    channels: &mut [f32],
     output: &mut [f32],
 ) {
     match *weight {
@@ -634,12 +566,7 @@ pub fn convolve_pixel(
             });
             let scales = &scales[..shape.in_height * shape.in_width];
             let digits = DigitRows::from_planes(values, scales, nonnegative);
-            let parameters = (weights, weight_scales, bias);
-            let overwrite = Accumulate::Overwrite;
-            let pixel = Some(pixel);
-            conv_digits(
-                kernels, shape, &digits, parameters, channels, pixel, output, overwrite,
-            );
+            kernels.conv_int8_pixel(shape, &digits, weights, weight_scales, bias, pixel, output)
         }
     }
 }

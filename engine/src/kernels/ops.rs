@@ -285,10 +285,10 @@ pub const DIGIT_BASE: f32 = 128.0;
 /// Symmetric 15-bit quantization split into two int8 digits: `scale = max |x| / 16383`,
 /// `code = round(x / scale)` (ties away from zero) in [-16383, 16383], written as
 /// `high = floor(code / 128)` (in [-128, 127]; in [0, 127] for `code >= 0`) and
-/// `low = code - 128 high` (in [0, 127]). An int8 kernel run on each digit, the high one
-/// with its weight scales times 128, sums to the convolution of the 15-bit codes, exact in
-/// the integer parts: this keeps the integer dot products and gives activations within
-/// 3e-5 of their range (7 bits: 4e-3, which cost more accuracy than the int8 weights).
+/// `low = code - 128 high` (in [0, 127]). The int8 kernel sums each digit plane over the
+/// same weights with int8 dot products and forms `128 high + low` per tap, the exact code
+/// sum: activations within 3e-5 of their range (7 bits: 4e-3, which cost more accuracy
+/// than the int8 weights did) at the price of twice the integer products.
 /// Returns the scale (1 for an all-zero input, NaN for a non-finite one, with zero digits)
 /// and whether every code is nonnegative.
 #[inline(always)]

@@ -1,7 +1,10 @@
 //! The reference implementation of [`Kernels`]: plain loops, written for clarity. Faster
 //! implementations are tested against it.
 
-use super::{Accumulate, ConvShape, Kernels, QUAD, QuantizedRows, int8_quad_index};
+use super::{
+    Accumulate, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS, QUAD, QuantizedRows,
+    int8_quad_index, ops,
+};
 
 /// Output channels accumulated at once in the int8 kernels (an i32 block on the stack).
 const INT8_BLOCK: usize = 128;
@@ -123,7 +126,7 @@ pub(crate) fn assert_conv_pixel_lengths(
 /// The slice lengths [`Kernels::conv_int8`] promises.
 pub(crate) fn assert_int8_lengths(
     shape: &ConvShape,
-    input: &QuantizedRows<'_>,
+    input: &DigitRows<'_>,
     parameters: (&[i8], &[f32], &[f32]),
     output_len: usize,
 ) {
@@ -134,7 +137,7 @@ pub(crate) fn assert_int8_lengths(
 /// The slice lengths [`Kernels::conv_int8_pixel`] promises, and the pixel inside the output.
 pub(crate) fn assert_int8_pixel_lengths(
     shape: &ConvShape,
-    input: &QuantizedRows<'_>,
+    input: &DigitRows<'_>,
     parameters: (&[i8], &[f32], &[f32]),
     (out_y, out_x): (usize, usize),
     output_len: usize,
@@ -146,11 +149,14 @@ pub(crate) fn assert_int8_pixel_lengths(
 
 fn assert_int8_inputs(
     shape: &ConvShape,
-    input: &QuantizedRows<'_>,
+    input: &DigitRows<'_>,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
 ) {
-    assert_eq!(input.values.len(), shape.input_len());
-    assert_eq!(input.scales.len(), shape.in_height * shape.in_width);
+    assert!(shape.in_channels <= MAX_DIGIT_CHANNELS);
+    assert_eq!(input.high.values.len(), shape.input_len());
+    assert_eq!(input.low.values.len(), shape.input_len());
+    assert_eq!(input.high.scales.len(), shape.in_height * shape.in_width);
+    assert_eq!(input.low.scales.len(), shape.in_height * shape.in_width);
     assert_eq!(weight.len(), shape.int8_weight_len());
     assert_eq!(weight_scales.len(), shape.out_channels);
     assert_eq!(bias.len(), shape.out_channels);
@@ -160,7 +166,7 @@ fn assert_int8_inputs(
 /// `channels` only: the whole reference kernel, and the tails of the SIMD ones.
 pub(crate) fn conv_int8_pixels(
     shape: &ConvShape,
-    input: &QuantizedRows<'_>,
+    input: &DigitRows<'_>,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     output: &mut [f32],
     accumulate: Accumulate,
@@ -189,64 +195,85 @@ pub(crate) fn conv_int8_pixels(
 /// `out` (the pixel's `out_channels` values), in the order [`Kernels::conv_int8`] prescribes.
 pub(crate) fn conv_int8_pixel(
     shape: &ConvShape,
-    input: &QuantizedRows<'_>,
+    input: &DigitRows<'_>,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     out: &mut [f32],
     accumulate: Accumulate,
     (out_y, out_x): (usize, usize),
     channels: core::ops::Range<usize>,
 ) {
-    let in_channels = shape.in_channels;
-    let out_channels = shape.out_channels;
-    {
-        for block in channels.clone().step_by(INT8_BLOCK) {
-            let width = (channels.end - block).min(INT8_BLOCK);
-            let mut totals = [0.0f32; INT8_BLOCK];
-            let totals = &mut totals[..width];
-            for (row, tap) in taps_inside(shape, out_y, out_x) {
-                let pixel = &input.values[row * in_channels..][..in_channels];
-                // One partial sum per weight of a quad row, added up per output channel after
-                // the last quad: the inner loop then runs over contiguous weights, which the
-                // compiler vectorizes (integer sums are exact in any order).
-                let mut partials = [0i32; QUAD * INT8_BLOCK];
-                let partials = &mut partials[..width * QUAD];
-                for (quad, values) in pixel.chunks(QUAD).enumerate() {
-                    // The padding channels of a last, partial quad have zero weights.
-                    let mut value = [0i16; QUAD];
-                    value
-                        .iter_mut()
-                        .zip(values)
-                        .for_each(|(v, &q)| *v = q as i16);
-                    let first = int8_quad_index(in_channels, out_channels, tap, quad * QUAD, block);
-                    let weights = &weight[first..][..width * QUAD];
-                    for (partial, w) in partials
-                        .chunks_exact_mut(QUAD)
-                        .zip(weights.chunks_exact(QUAD))
-                    {
-                        // Any i8 x i8 product fits i16 (at most 128 x 128 = 16384): 16-bit
-                        // multiplies exist on every SIMD ISA, 32-bit ones not on baseline
-                        // x86-64 (SSE2).
-                        for ((partial, &w), &value) in partial.iter_mut().zip(w).zip(&value) {
-                            *partial += (value * w as i16) as i32;
-                        }
-                    }
-                }
-                let scale = input.scales[row];
-                for (total, partial) in totals.iter_mut().zip(partials.chunks_exact(QUAD)) {
-                    let sum: i32 = partial.iter().sum();
-                    *total += sum as f32 * scale;
-                }
+    for block in channels.clone().step_by(INT8_BLOCK) {
+        let width = (channels.end - block).min(INT8_BLOCK);
+        let mut totals = [0.0f32; INT8_BLOCK];
+        let totals = &mut totals[..width];
+        for (row, tap) in taps_inside(shape, out_y, out_x) {
+            let high = digit_sums(shape, &input.high, weight, (row, tap), block, width);
+            let low = digit_sums(shape, &input.low, weight, (row, tap), block, width);
+            let scale = input.scales()[row];
+            for ((total, &high), &low) in totals.iter_mut().zip(&high).zip(&low) {
+                // `128 high + low` is the exact code sum (it fits i32, [`MAX_DIGIT_CHANNELS`]);
+                // the high part alone may not, so the arithmetic wraps, which is exact modulo
+                // 2^32 and therefore exact for the result.
+                let sum = high.wrapping_mul(DIGIT_BASE).wrapping_add(low);
+                *total += sum as f32 * scale;
             }
-            let channels = block..block + width;
-            store_scaled(
-                &mut out[channels.clone()],
-                &totals[..width],
-                (weight_scales, bias),
-                channels,
-                accumulate,
-            );
+        }
+        let channels = block..block + width;
+        store_scaled(
+            &mut out[channels.clone()],
+            &totals[..width],
+            (weight_scales, bias),
+            channels,
+            accumulate,
+        );
+    }
+}
+
+/// Base of the activation digits as an integer factor (`code = 128 high + low`).
+const DIGIT_BASE: i32 = ops::DIGIT_BASE as i32;
+
+/// The exact sums `sum_c digit[row, c] q_w[tap, c, o]` for the `width` output channels from
+/// `block`, one digit plane.
+fn digit_sums(
+    shape: &ConvShape,
+    plane: &QuantizedRows<'_>,
+    weight: &[i8],
+    (row, tap): (usize, usize),
+    block: usize,
+    width: usize,
+) -> [i32; INT8_BLOCK] {
+    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+    let pixel = &plane.values[row * in_channels..][..in_channels];
+    // One partial sum per weight of a quad row, added up per output channel after the last
+    // quad: the inner loop then runs over contiguous weights, which the compiler vectorizes
+    // (integer sums are exact in any order).
+    let mut partials = [0i32; QUAD * INT8_BLOCK];
+    let partials = &mut partials[..width * QUAD];
+    for (quad, values) in pixel.chunks(QUAD).enumerate() {
+        // The padding channels of a last, partial quad have zero weights.
+        let mut value = [0i16; QUAD];
+        value
+            .iter_mut()
+            .zip(values)
+            .for_each(|(v, &q)| *v = q as i16);
+        let first = int8_quad_index(in_channels, out_channels, tap, quad * QUAD, block);
+        let weights = &weight[first..][..width * QUAD];
+        for (partial, w) in partials
+            .chunks_exact_mut(QUAD)
+            .zip(weights.chunks_exact(QUAD))
+        {
+            // Any i8 x i8 product fits i16 (at most 128 x 128 = 16384): 16-bit multiplies
+            // exist on every SIMD ISA, 32-bit ones not on baseline x86-64 (SSE2).
+            for ((partial, &w), &value) in partial.iter_mut().zip(w).zip(&value) {
+                *partial += (value * w as i16) as i32;
+            }
         }
     }
+    let mut sums = [0i32; INT8_BLOCK];
+    for (sum, partial) in sums.iter_mut().zip(partials.chunks_exact(QUAD)) {
+        *sum = partial.iter().sum();
+    }
+    sums
 }
 
 /// Portable scalar kernels (the compiler may still auto-vectorise the inner loops).
@@ -336,7 +363,7 @@ impl Kernels for Scalar {
     fn conv_int8(
         &self,
         shape: &ConvShape,
-        input: &QuantizedRows<'_>,
+        input: &DigitRows<'_>,
         weight: &[i8],
         weight_scales: &[f32],
         bias: &[f32],

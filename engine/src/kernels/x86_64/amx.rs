@@ -3,16 +3,17 @@
 //!
 //! One `tdpbusd` multiplies a 16 x 64 tile of u8 activations (16 output pixels, 64 input
 //! channels) by a 16 x 64 tile of i8 weights (16 input-channel quads, 16 output channels)
-//! into 16 x 16 exact i32 sums: 16,384 products where `vpdpbusd` does 64. A block is 32
-//! pixels x 32 channels: two activation tiles, two weight tiles and four sum tiles, all
-//! eight tile registers. The contract sums exactly per kernel tap and scales each tap by
-//! its input pixel's scale, so the sum tiles cannot run across taps: per tap they are
-//! stored and added to f32 totals with AVX-512, in kernel order, exactly as the scalar
-//! reference does (same bits, tested on every backend).
+//! into 16 x 16 exact i32 sums: 16,384 products where `vpdpbusd` does 64. A block is 16
+//! pixels x 32 channels: the two activation tiles are the pixels' high and low digits, the
+//! two weight tiles 16 channels each, and the four sum tiles one per digit and weight tile,
+//! all eight tile registers. The contract sums exactly per kernel tap and scales each tap
+//! by its input pixel's scale, so the sum tiles cannot run across taps: per tap they are
+//! stored, each pixel's `128 high + low` formed, and added to f32 totals with AVX-512, in
+//! kernel order, exactly as the scalar reference does (same bits, tested on every backend).
 //!
 //! Channel blocks are the outer loop; inside one, a group of 128 pixels keeps its f32
 //! totals on the stack while the taps go by, and each tap's weights for the block are
-//! copied once into tile order ([`PackedTap`], at most 16 KB) for the group's four blocks:
+//! copied once into tile order ([`PackedTap`], at most 16 KB) for the group's eight blocks:
 //! read in place, a weight tile's rows lie `4 out_channels` bytes apart, a power of two
 //! that puts them all in two L1 sets. The kernel uses about 40 KB of stack.
 //!
@@ -27,15 +28,15 @@
 
 use core::arch::asm;
 use core::arch::x86_64::{
-    __m512, _mm512_add_ps, _mm512_cvtepi32_ps, _mm512_load_si512, _mm512_loadu_ps,
-    _mm512_loadu_si512, _mm512_mul_ps, _mm512_set1_ps, _mm512_setzero_ps, _mm512_setzero_si512,
-    _mm512_store_si512, _mm512_storeu_ps,
+    __m512, _mm512_add_epi32, _mm512_add_ps, _mm512_cvtepi32_ps, _mm512_load_si512,
+    _mm512_loadu_ps, _mm512_loadu_si512, _mm512_mul_ps, _mm512_set1_ps, _mm512_setzero_ps,
+    _mm512_setzero_si512, _mm512_slli_epi32, _mm512_store_si512, _mm512_storeu_ps,
 };
 
 use super::avx512::Avx512;
 use crate::kernels::ops::Activation;
 use crate::kernels::scalar::assert_int8_lengths;
-use crate::kernels::{Accumulate, ConvShape, Kernels, QUAD, QuantizedRows, int8_quad_index};
+use crate::kernels::{Accumulate, ConvShape, DigitRows, Kernels, QUAD, int8_quad_index};
 
 /// Rows of every tile: pixels of an activation tile, quads of a weight tile, pixels of a
 /// sum tile.
@@ -47,7 +48,7 @@ const CHANNELS_PER_STEP: usize = ROW_BYTES;
 /// Output channels of a sum tile.
 const SUM_COLUMNS: usize = ROW_BYTES / 4;
 /// Pixels and output channels of a block.
-const BLOCK_PIXELS: usize = 2 * ROWS;
+const BLOCK_PIXELS: usize = ROWS;
 const BLOCK_CHANNELS: usize = 2 * SUM_COLUMNS;
 
 /// AMX-TILE and AMX-INT8 kernels (and AVX-512, AVX2). Reachable only through
@@ -66,8 +67,8 @@ impl Amx {
     /// Whether [`Kernels::conv_int8`] runs on the tiles here: activations readable as u8,
     /// whole 64-channel steps up to [`MAX_IN_CHANNELS`], whole 32-channel blocks (other
     /// shapes go to [`Avx512`]). Every int8 layer of the model qualifies.
-    pub fn covers(shape: &ConvShape, input: &QuantizedRows<'_>) -> bool {
-        input.nonnegative
+    pub fn covers(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
+        input.nonnegative()
             && shape.in_channels.is_multiple_of(CHANNELS_PER_STEP)
             && shape.in_channels <= MAX_IN_CHANNELS
             && shape.out_channels.is_multiple_of(BLOCK_CHANNELS)
@@ -79,7 +80,7 @@ impl Amx {
     pub fn conv_int8_on_tiles(
         &self,
         shape: &ConvShape,
-        input: &QuantizedRows<'_>,
+        input: &DigitRows<'_>,
         weight: &[i8],
         weight_scales: &[f32],
         bias: &[f32],
@@ -188,7 +189,7 @@ struct TileBuffer([u8; ROWS * ROW_BYTES]);
 const MAX_IN_CHANNELS: usize = 512;
 /// Pixels whose f32 totals stay on the stack while the taps go by: the weights of one tap
 /// are packed once for all of them.
-const GROUP_PIXELS: usize = 4 * BLOCK_PIXELS;
+const GROUP_PIXELS: usize = 8 * BLOCK_PIXELS;
 
 /// Input coordinates of kernel tap (0, 0) for each pixel of a group, negative in the
 /// padding: worked out once per group, not once per tap (a division per pixel).
@@ -250,7 +251,7 @@ struct PackedTap([u8; MAX_IN_CHANNELS * BLOCK_CHANNELS]);
 #[target_feature(enable = "avx512f")]
 unsafe fn conv(
     shape: &ConvShape,
-    input: &QuantizedRows<'_>,
+    input: &DigitRows<'_>,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     output: &mut [f32],
     accumulate: Accumulate,
@@ -284,15 +285,8 @@ unsafe fn conv(
                         let totals = &mut totals.as_chunks_mut().0[block / BLOCK_PIXELS];
                         // SAFETY: the caller's promises; `rows` are inside the input.
                         unsafe {
-                            tap_sums(
-                                shape,
-                                input.values,
-                                &packed,
-                                &rows,
-                                &mut gathered,
-                                &mut sums,
-                            );
-                            add_tap(&rows, input.scales, &sums, totals);
+                            tap_sums(shape, input, &packed, &rows, &mut gathered, &mut sums);
+                            add_tap(&rows, input.scales(), &sums, totals);
                         }
                     }
                 }
@@ -340,23 +334,23 @@ unsafe fn pack_tap(shape: &ConvShape, weights: &[i8], packed: &mut PackedTap) {
     }
 }
 
-/// One tap's exact i32 sums of the block: `sums[2 half + vector]` holds pixels `16 half..`
-/// x channels `16 vector..` of the block.
+/// One tap's exact i32 sums of the block: `sums[vector]` holds the high digits' sums for
+/// channels `16 vector..` of the block, `sums[2 + vector]` the low digits'.
 ///
 /// # Safety
 /// As for [`conv`]; every `Some` row is an input row; `packed` holds the tap's weights.
 #[inline(always)]
 unsafe fn tap_sums(
     shape: &ConvShape,
-    values: &[i8],
+    input: &DigitRows<'_>,
     packed: &PackedTap,
     rows: &[Option<usize>; BLOCK_PIXELS],
     gathered: &mut [TileBuffer; 2],
     sums: &mut [TileBuffer; 4],
 ) {
     let in_channels = shape.in_channels;
-    let halves = [&rows[..ROWS], &rows[ROWS..]];
-    let direct = halves.map(direct_source);
+    let planes = [input.high.values, input.low.values];
+    let direct = direct_source(rows);
     // SAFETY: tiles are configured (caller).
     unsafe {
         asm!(
@@ -368,27 +362,20 @@ unsafe fn tap_sums(
         )
     };
     for step in 0..in_channels / CHANNELS_PER_STEP {
+        let first_channel = step * CHANNELS_PER_STEP;
         let mut sources = [(core::ptr::null::<i8>(), 0usize); 2];
-        for half in 0..2 {
-            let first_channel = step * CHANNELS_PER_STEP;
-            sources[half] = match direct[half] {
+        for (digit, plane) in planes.iter().enumerate() {
+            sources[digit] = match direct {
                 Some((row, row_step)) => (
-                    values[row * in_channels + first_channel..].as_ptr(),
+                    plane[row * in_channels + first_channel..].as_ptr(),
                     row_step * in_channels,
                 ),
                 None => {
+                    let buffer = &mut gathered[digit];
                     // SAFETY: AVX-512F; each `Some` row holds `in_channels` values, so its
                     // 64 from `first_channel` are readable; the buffer holds 16 rows of 64.
-                    unsafe {
-                        gather(
-                            values,
-                            in_channels,
-                            first_channel,
-                            halves[half],
-                            &mut gathered[half],
-                        )
-                    };
-                    (gathered[half].0.as_ptr().cast::<i8>(), ROW_BYTES)
+                    unsafe { gather(plane, in_channels, first_channel, rows, buffer) };
+                    (buffer.0.as_ptr().cast::<i8>(), ROW_BYTES)
                 }
             };
         }
@@ -398,18 +385,18 @@ unsafe fn tap_sums(
         // tiles are the 2 KB of `packed` from `weights`.
         unsafe {
             asm!(
-                "tileloadd tmm4, [{a0} + {sa0}]",
-                "tileloadd tmm5, [{a1} + {sa1}]",
+                "tileloadd tmm4, [{high} + {high_stride}]",
+                "tileloadd tmm5, [{low} + {low_stride}]",
                 "tileloadd tmm6, [{b0} + {sb}]",
                 "tileloadd tmm7, [{b1} + {sb}]",
                 "tdpbusd tmm0, tmm4, tmm6",
                 "tdpbusd tmm1, tmm4, tmm7",
                 "tdpbusd tmm2, tmm5, tmm6",
                 "tdpbusd tmm3, tmm5, tmm7",
-                a0 = in(reg) sources[0].0,
-                sa0 = in(reg) sources[0].1,
-                a1 = in(reg) sources[1].0,
-                sa1 = in(reg) sources[1].1,
+                high = in(reg) sources[0].0,
+                high_stride = in(reg) sources[0].1,
+                low = in(reg) sources[1].0,
+                low_stride = in(reg) sources[1].1,
                 b0 = in(reg) weights,
                 b1 = in(reg) weights.add(ROWS * ROW_BYTES),
                 sb = in(reg) ROW_BYTES,
@@ -460,8 +447,9 @@ unsafe fn gather(
     }
 }
 
-/// `totals[pixel] += (sums as f32) * scale of the pixel's row`, a product then a sum, for
-/// the pixels that read a row at this tap.
+/// `totals[pixel] += (code sums as f32) * scale of the pixel's row`, a product then a sum,
+/// for the pixels that read a row at this tap; the code sum is `128 high + low`, wrapping
+/// as the scalar reference does (exact: the result fits i32).
 ///
 /// # Safety
 /// AVX-512F; `scales` holds every `Some` row.
@@ -474,16 +462,14 @@ unsafe fn add_tap(
 ) {
     for (pixel, row) in rows.iter().enumerate() {
         let Some(row) = *row else { continue };
-        let (half, line) = (pixel / ROWS, pixel % ROWS);
+        let at = pixel * ROW_BYTES;
         // SAFETY: AVX-512F; each sum buffer row is 64 aligned bytes.
         unsafe {
             let scale = _mm512_set1_ps(scales[row]);
             for vector in 0..2 {
-                let sum = _mm512_load_si512(
-                    sums[2 * half + vector].0[line * ROW_BYTES..]
-                        .as_ptr()
-                        .cast(),
-                );
+                let high = _mm512_load_si512(sums[vector].0[at..].as_ptr().cast());
+                let low = _mm512_load_si512(sums[2 + vector].0[at..].as_ptr().cast());
+                let sum = _mm512_add_epi32(_mm512_slli_epi32::<7>(high), low);
                 let scaled = _mm512_mul_ps(_mm512_cvtepi32_ps(sum), scale);
                 totals[pixel][vector] = _mm512_add_ps(totals[pixel][vector], scaled);
             }
@@ -558,25 +544,16 @@ impl Kernels for Amx {
     fn conv_int8_pixel(
         &self,
         shape: &ConvShape,
-        input: &QuantizedRows<'_>,
+        input: &DigitRows<'_>,
         weight: &[i8],
         weight_scales: &[f32],
         bias: &[f32],
         pixel: (usize, usize),
         output: &mut [f32],
-        accumulate: Accumulate,
     ) {
         // One pixel is one row of a tile: the VNNI path is as fast, with the same bits.
-        self.avx512.conv_int8_pixel(
-            shape,
-            input,
-            weight,
-            weight_scales,
-            bias,
-            pixel,
-            output,
-            accumulate,
-        )
+        self.avx512
+            .conv_int8_pixel(shape, input, weight, weight_scales, bias, pixel, output)
     }
 
     fn upsample_conv(
@@ -607,7 +584,7 @@ impl Kernels for Amx {
     fn conv_int8(
         &self,
         shape: &ConvShape,
-        input: &QuantizedRows<'_>,
+        input: &DigitRows<'_>,
         weight: &[i8],
         weight_scales: &[f32],
         bias: &[f32],

@@ -25,15 +25,15 @@ use core::arch::x86_64::{
     __m256, __m256i, __m512, __m512i, _mm256_add_epi32, _mm256_add_ps, _mm256_cvtepi32_ps,
     _mm256_loadu_ps, _mm256_loadu_si256, _mm256_madd_epi16, _mm256_maddubs_epi16, _mm256_mul_ps,
     _mm256_set1_epi16, _mm256_set1_epi32, _mm256_set1_ps, _mm256_setzero_ps, _mm256_setzero_si256,
-    _mm256_storeu_ps, _mm512_add_ps, _mm512_cvtepi32_ps, _mm512_dpbusd_epi32, _mm512_loadu_ps,
-    _mm512_loadu_si512, _mm512_mul_ps, _mm512_set1_epi32, _mm512_set1_ps, _mm512_setzero_ps,
-    _mm512_setzero_si512, _mm512_storeu_ps,
+    _mm256_slli_epi32, _mm256_storeu_ps, _mm512_add_epi32, _mm512_add_ps, _mm512_cvtepi32_ps,
+    _mm512_dpbusd_epi32, _mm512_loadu_ps, _mm512_loadu_si512, _mm512_mul_ps, _mm512_set1_epi32,
+    _mm512_set1_ps, _mm512_setzero_ps, _mm512_setzero_si512, _mm512_slli_epi32, _mm512_storeu_ps,
 };
 
 use crate::kernels::scalar::{
     assert_int8_lengths, assert_int8_pixel_lengths, conv_int8_pixel, conv_int8_pixels,
 };
-use crate::kernels::{Accumulate, ConvShape, QUAD, QuantizedRows, int8_quad_index};
+use crate::kernels::{Accumulate, ConvShape, DigitRows, QUAD, int8_quad_index};
 
 /// An integer dot product over input-channel quads, `WIDTH` output channels a vector, and
 /// the f32 arithmetic around it.
@@ -61,6 +61,9 @@ pub(crate) unsafe trait Int8Lanes {
         activations: Self::Integers,
         weights: Self::Integers,
     ) -> Self::Integers;
+    /// `128 high + low` per lane, wrapping (exact when the result fits, as the contract's
+    /// code sums do).
+    unsafe fn combine_digits(high: Self::Integers, low: Self::Integers) -> Self::Integers;
     /// `total + (sum as f32) * scale`, a product then a sum (two roundings).
     unsafe fn add_scaled(total: Self::Floats, sum: Self::Integers, scale: f32) -> Self::Floats;
     unsafe fn load(from: *const f32) -> Self::Floats;
@@ -119,6 +122,11 @@ unsafe impl Int8Lanes for PairSumsYmm {
             let pairs = _mm256_maddubs_epi16(activations, weights);
             _mm256_add_epi32(sum, _mm256_madd_epi16(pairs, _mm256_set1_epi16(1)))
         }
+    }
+    #[inline(always)]
+    unsafe fn combine_digits(high: __m256i, low: __m256i) -> __m256i {
+        // SAFETY: the caller runs on AVX2 (trait contract).
+        unsafe { _mm256_add_epi32(_mm256_slli_epi32::<7>(high), low) }
     }
     #[inline(always)]
     unsafe fn add_scaled(total: __m256, sum: __m256i, scale: f32) -> __m256 {
@@ -181,6 +189,11 @@ unsafe impl Int8Lanes for VnniZmm {
     unsafe fn dot_quads(sum: __m512i, activations: __m512i, weights: __m512i) -> __m512i {
         // SAFETY: the caller runs on AVX-512 VNNI (trait contract).
         unsafe { _mm512_dpbusd_epi32(sum, activations, weights) }
+    }
+    #[inline(always)]
+    unsafe fn combine_digits(high: __m512i, low: __m512i) -> __m512i {
+        // SAFETY: the caller runs on AVX-512F (trait contract).
+        unsafe { _mm512_add_epi32(_mm512_slli_epi32::<7>(high), low) }
     }
     #[inline(always)]
     unsafe fn add_scaled(total: __m512, sum: __m512i, scale: f32) -> __m512 {
@@ -251,11 +264,11 @@ impl<const P: usize> PixelTile<P> {
     }
 }
 
-/// Whether the SIMD int8 tiles apply: activations readable as u8, and whole input-channel
+/// Whether the SIMD int8 tiles apply: both digits readable as u8, and whole input-channel
 /// quads in each row (so a 4-byte activation load stays inside its pixel). The int8 layers
 /// of the model all qualify; the stem (3 channels, kept f32 by the tool) would not.
-pub(crate) fn tiles_apply(shape: &ConvShape, input: &QuantizedRows<'_>) -> bool {
-    input.nonnegative && shape.in_channels.is_multiple_of(QUAD)
+pub(crate) fn tiles_apply(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
+    input.nonnegative() && shape.in_channels.is_multiple_of(QUAD)
 }
 
 /// The exact i32 sums of one kernel tap: `P` pixels (their activation rows) x `V` vectors
@@ -294,7 +307,8 @@ unsafe fn tap_sums<L: Int8Lanes, const P: usize, const V: usize>(
     sums
 }
 
-/// The f32 totals of the tile `pixels` x `V WIDTH` channels from `channel`.
+/// The f32 totals of the tile `pixels` x `V WIDTH` channels from `channel`: per tap, the
+/// sums of each digit plane over the same weights, combined into the code sums.
 ///
 /// # Safety
 /// The CPU supports `L`; the slices have the lengths `shape` implies; [`tiles_apply`]
@@ -302,7 +316,7 @@ unsafe fn tap_sums<L: Int8Lanes, const P: usize, const V: usize>(
 #[inline(always)]
 unsafe fn tile<L: Int8Lanes, const P: usize, const V: usize>(
     shape: &ConvShape,
-    input: &QuantizedRows<'_>,
+    input: &DigitRows<'_>,
     weight: &[i8],
     pixels: &PixelTile<P>,
     channel: usize,
@@ -317,28 +331,30 @@ unsafe fn tile<L: Int8Lanes, const P: usize, const V: usize>(
             let Some(any_row) = rows.iter().flatten().next().copied() else {
                 continue;
             };
-            let activations =
-                rows.map(|row| input.values[row.unwrap_or(any_row) * in_channels..].as_ptr());
+            let row_of = |row: Option<usize>| row.unwrap_or(any_row) * in_channels;
             let tap = kernel_y * shape.kernel_width + kernel_x;
             let weights = &weight[int8_quad_index(in_channels, out_channels, tap, 0, channel)..];
-            // SAFETY: each row holds `in_channels` = 4 quads values (`tiles_apply`); the
-            // tap's quads of the block's `V WIDTH` channels are inside `weight`
-            // (`channel + V WIDTH <= out_channels`).
-            let sums = unsafe {
-                tap_sums::<L, P, V>(
-                    activations,
-                    weights.as_ptr(),
-                    in_channels / QUAD,
-                    out_channels,
+            let quads = in_channels / QUAD;
+            // SAFETY: each row of either plane holds `in_channels` = 4 quads values
+            // (`tiles_apply`); the tap's quads of the block's `V WIDTH` channels are inside
+            // `weight` (`channel + V WIDTH <= out_channels`).
+            let (high, low) = unsafe {
+                let high = rows.map(|row| input.high.values[row_of(row)..].as_ptr());
+                let low = rows.map(|row| input.low.values[row_of(row)..].as_ptr());
+                (
+                    tap_sums::<L, P, V>(high, weights.as_ptr(), quads, out_channels),
+                    tap_sums::<L, P, V>(low, weights.as_ptr(), quads, out_channels),
                 )
             };
             for pixel in 0..P {
                 let Some(row) = rows[pixel] else { continue };
-                let scale = input.scales[row];
+                let scale = input.scales()[row];
                 for vector in 0..V {
                     // SAFETY: the caller runs on `L`'s CPU.
-                    totals[pixel][vector] =
-                        unsafe { L::add_scaled(totals[pixel][vector], sums[pixel][vector], scale) };
+                    totals[pixel][vector] = unsafe {
+                        let sum = L::combine_digits(high[pixel][vector], low[pixel][vector]);
+                        L::add_scaled(totals[pixel][vector], sum, scale)
+                    };
                 }
             }
         }
@@ -387,7 +403,7 @@ unsafe fn store<L: Int8Lanes, const P: usize, const V: usize>(
 #[inline(always)]
 unsafe fn channel_blocks<L: Int8Lanes, const P: usize, const V: usize>(
     shape: &ConvShape,
-    input: &QuantizedRows<'_>,
+    input: &DigitRows<'_>,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     output: &mut [f32],
     accumulate: Accumulate,
@@ -429,7 +445,7 @@ unsafe fn channel_blocks<L: Int8Lanes, const P: usize, const V: usize>(
 #[inline(always)]
 pub(crate) unsafe fn conv<L: Int8Lanes, const P: usize, const V: usize>(
     shape: &ConvShape,
-    input: &QuantizedRows<'_>,
+    input: &DigitRows<'_>,
     parameters: (&[i8], &[f32], &[f32]),
     output: &mut [f32],
     accumulate: Accumulate,
@@ -462,13 +478,14 @@ pub(crate) unsafe fn conv<L: Int8Lanes, const P: usize, const V: usize>(
 #[inline(always)]
 pub(crate) unsafe fn conv_pixel<L: Int8Lanes, const V: usize>(
     shape: &ConvShape,
-    input: &QuantizedRows<'_>,
+    input: &DigitRows<'_>,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     (out_y, out_x): (usize, usize),
-    (output, accumulate): (&mut [f32], Accumulate),
+    output: &mut [f32],
 ) {
     let pixels = PixelTile::<1>::new(shape, out_y * shape.out_width() + out_x, 1);
     let out_channels = shape.out_channels;
+    let overwrite = Accumulate::Overwrite;
     let mut channel = 0;
     while channel < out_channels {
         let block = channel..out_channels;
@@ -478,11 +495,11 @@ pub(crate) unsafe fn conv_pixel<L: Int8Lanes, const V: usize>(
         unsafe {
             if channel + V * L::WIDTH <= out_channels {
                 let totals = tile::<L, 1, V>(shape, input, weight, &pixels, channel);
-                store::<L, 1, V>(&totals, 1, parameters, out, 0, accumulate);
+                store::<L, 1, V>(&totals, 1, parameters, out, 0, overwrite);
                 channel += V * L::WIDTH;
             } else if channel + L::WIDTH <= out_channels {
                 let totals = tile::<L, 1, 1>(shape, input, weight, &pixels, channel);
-                store::<L, 1, 1>(&totals, 1, parameters, out, 0, accumulate);
+                store::<L, 1, 1>(&totals, 1, parameters, out, 0, overwrite);
                 channel += L::WIDTH;
             } else {
                 break;
@@ -495,7 +512,7 @@ pub(crate) unsafe fn conv_pixel<L: Int8Lanes, const V: usize>(
             input,
             (weight, weight_scales, bias),
             output,
-            accumulate,
+            overwrite,
             (out_y, out_x),
             channel..out_channels,
         );
@@ -515,7 +532,7 @@ const VNNI_TILE: (usize, usize) = (6, 4);
 macro_rules! backend {
     ($module:ident, $lanes:ty, $tile:expr, $features:literal) => {
         pub(crate) mod $module {
-            use crate::kernels::{Accumulate, ConvShape, QuantizedRows};
+            use crate::kernels::{Accumulate, ConvShape, DigitRows};
 
             const TILE: (usize, usize) = $tile;
 
@@ -526,7 +543,7 @@ macro_rules! backend {
             #[target_feature(enable = $features)]
             pub(crate) unsafe fn conv(
                 shape: &ConvShape,
-                input: &QuantizedRows<'_>,
+                input: &DigitRows<'_>,
                 parameters: (&[i8], &[f32], &[f32]),
                 output: &mut [f32],
                 accumulate: Accumulate,
@@ -546,14 +563,14 @@ macro_rules! backend {
             #[target_feature(enable = $features)]
             pub(crate) unsafe fn conv_pixel(
                 shape: &ConvShape,
-                input: &QuantizedRows<'_>,
+                input: &DigitRows<'_>,
                 parameters: (&[i8], &[f32], &[f32]),
                 pixel: (usize, usize),
-                target: (&mut [f32], Accumulate),
+                output: &mut [f32],
             ) {
                 // SAFETY: this function's contract is the body's.
                 unsafe {
-                    super::conv_pixel::<$lanes, { TILE.1 }>(shape, input, parameters, pixel, target)
+                    super::conv_pixel::<$lanes, { TILE.1 }>(shape, input, parameters, pixel, output)
                 }
             }
         }
@@ -570,16 +587,11 @@ backend!(
 
 /// A backend's [`conv`] wrapper.
 pub(crate) type ConvKernel =
-    unsafe fn(&ConvShape, &QuantizedRows<'_>, (&[i8], &[f32], &[f32]), &mut [f32], Accumulate);
+    unsafe fn(&ConvShape, &DigitRows<'_>, (&[i8], &[f32], &[f32]), &mut [f32], Accumulate);
 
 /// A backend's [`conv_pixel`] wrapper.
-pub(crate) type PixelKernel = unsafe fn(
-    &ConvShape,
-    &QuantizedRows<'_>,
-    (&[i8], &[f32], &[f32]),
-    (usize, usize),
-    (&mut [f32], Accumulate),
-);
+pub(crate) type PixelKernel =
+    unsafe fn(&ConvShape, &DigitRows<'_>, (&[i8], &[f32], &[f32]), (usize, usize), &mut [f32]);
 
 /// [`Kernels::conv_int8`](crate::kernels::Kernels::conv_int8) on `kernel`: the lengths
 /// checked, inputs the tiles do not take ([`tiles_apply`]) on the scalar reference.
@@ -589,7 +601,7 @@ pub(crate) type PixelKernel = unsafe fn(
 pub(crate) unsafe fn checked_conv(
     kernel: ConvKernel,
     shape: &ConvShape,
-    input: &QuantizedRows<'_>,
+    input: &DigitRows<'_>,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     output: &mut [f32],
     accumulate: Accumulate,
@@ -630,28 +642,19 @@ pub(crate) unsafe fn checked_conv(
 pub(crate) unsafe fn checked_conv_pixel(
     kernel: PixelKernel,
     shape: &ConvShape,
-    input: &QuantizedRows<'_>,
+    input: &DigitRows<'_>,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     (out_y, out_x): (usize, usize),
-    (output, accumulate): (&mut [f32], Accumulate),
+    output: &mut [f32],
 ) {
     let parameters = (weight, weight_scales, bias);
     assert_int8_pixel_lengths(shape, input, parameters, (out_y, out_x), output.len());
     if !tiles_apply(shape, input) {
         let (channels, pixel) = (0..shape.out_channels, (out_y, out_x));
-        return conv_int8_pixel(
-            shape, input, parameters, output, accumulate, pixel, channels,
-        );
+        let overwrite = Accumulate::Overwrite;
+        return conv_int8_pixel(shape, input, parameters, output, overwrite, pixel, channels);
     }
     // SAFETY: the caller vouches for the CPU; the lengths and the pixel were asserted and
     // `tiles_apply` checked just above.
-    unsafe {
-        kernel(
-            shape,
-            input,
-            parameters,
-            (out_y, out_x),
-            (output, accumulate),
-        )
-    }
+    unsafe { kernel(shape, input, parameters, (out_y, out_x), output) }
 }

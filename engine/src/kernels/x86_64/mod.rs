@@ -31,7 +31,7 @@ macro_rules! shared_kernels {
         fn conv_int8(
             &self,
             shape: &ConvShape,
-            input: &QuantizedRows<'_>,
+            input: &DigitRows<'_>,
             weight: &[i8],
             weight_scales: &[f32],
             bias: &[f32],
@@ -47,19 +47,17 @@ macro_rules! shared_kernels {
         fn conv_int8_pixel(
             &self,
             shape: &ConvShape,
-            input: &QuantizedRows<'_>,
+            input: &DigitRows<'_>,
             weight: &[i8],
             weight_scales: &[f32],
             bias: &[f32],
             pixel: (usize, usize),
             output: &mut [f32],
-            accumulate: Accumulate,
         ) {
             let parameters = (weight, weight_scales, bias);
             let kernel = int8::$backend::conv_pixel;
-            let target = (output, accumulate);
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { int8::checked_conv_pixel(kernel, shape, input, parameters, pixel, target) }
+            unsafe { int8::checked_conv_pixel(kernel, shape, input, parameters, pixel, output) }
         }
 
         fn conv_weight_int8(
