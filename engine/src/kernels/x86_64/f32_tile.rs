@@ -10,6 +10,8 @@
 //! input-channel order from zero, then the bias is added, whichever tile computes it: the
 //! single-pixel path ([`conv_pixel`]) is the one-pixel tile and gives the same bits.
 
+use core::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+
 use super::lanes::Lanes;
 
 use super::tap_offsets;
@@ -104,6 +106,9 @@ fn whole_rows<const N: usize>(
     Some(offsets)
 }
 
+/// Weight rows [`accumulate_run`] prefetches ahead of the one it reads.
+const PREFETCH_ROWS: usize = 8;
+
 /// Adds to `sums` the products of `length` consecutive input values from each pixel's
 /// offset (pixels with `None` skipped) by as many weight rows from `first_weight`, in order.
 ///
@@ -125,6 +130,12 @@ unsafe fn accumulate_run<L: Lanes, const N: usize>(
         // row of 2 WIDTH channels is inside `weight` (the caller's promises).
         unsafe {
             let row = weight.as_ptr().add(first_weight + index * out_channels);
+            // Rows lie `out_channels` floats apart, a power of two that crowds them into a
+            // few L1 sets, so most come from L2: ask for them a few rows ahead. A hint only
+            // (it never faults), hence the wrapping address.
+            let ahead = row.wrapping_add(PREFETCH_ROWS * out_channels);
+            _mm_prefetch::<_MM_HINT_T0>(ahead.cast());
+            _mm_prefetch::<_MM_HINT_T0>(ahead.wrapping_add(L::WIDTH).cast());
             let low = L::load(row);
             let high = L::load(row.add(L::WIDTH));
             let values = input.as_ptr().add(index);
