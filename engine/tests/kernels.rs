@@ -865,17 +865,13 @@ fn int8_convolution_is_bit_identical_on_every_backend() {
             _ if large => (1 + rng.below(4), 1 + rng.below(5)),
             _ => (1 + rng.below(9), 1 + rng.below(11)),
         };
-        let shape = ConvShape {
-            in_height: height,
-            in_width: width,
-            in_channels,
+        let shape = ConvShape::square(
+            (height, width, in_channels),
             out_channels,
-            kernel_height: kernel,
-            kernel_width: kernel,
+            kernel,
             stride,
-            padding_height: padding,
-            padding_width: padding,
-        };
+            padding,
+        );
         if height.min(width) + 2 * padding < kernel {
             continue; // no output pixel
         }
@@ -933,17 +929,13 @@ fn int8_convolution_on_matrix_tiles_is_bit_identical() {
         } else {
             (height, width)
         };
-        let shape = ConvShape {
-            in_height: height,
-            in_width: width,
-            in_channels,
+        let shape = ConvShape::square(
+            (height, width, in_channels),
             out_channels,
-            kernel_height: kernel,
-            kernel_width: kernel,
+            kernel,
             stride,
-            padding_height: padding,
-            padding_width: padding,
-        };
+            padding,
+        );
         let problem = Int8Case::random(&mut rng, shape, true);
         let initial = rng.vec(shape.output_len());
         for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
