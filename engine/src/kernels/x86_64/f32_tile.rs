@@ -19,7 +19,8 @@ use crate::kernels::{Accumulate, ConvShape};
 
 /// Output positions `first .. first + count` (`count <= N`, row-major over the output map,
 /// so a tile may wrap onto the next row and small maps fill whole tiles) x `2 WIDTH`
-/// channels from `channel`.
+/// channels from `channel`: `sums` (zero, or the partial sums of the taps before) plus the
+/// products of `taps`.
 ///
 /// A kernel row whose taps are all inside the input for every pixel (or, for some, all in
 /// the vertical padding) is one run of `kernel_width x in_channels` consecutive input values
@@ -34,9 +35,9 @@ use crate::kernels::{Accumulate, ConvShape};
 unsafe fn tile<L: Lanes, const N: usize>(
     shape: &ConvShape,
     (input, weight): (&[f32], &[f32]),
-    first: usize,
-    count: usize,
+    (first, count): (usize, usize),
     channel: usize,
+    (taps, mut sums): (Taps, [[L::Vector; 2]; N]),
 ) -> [[L::Vector; 2]; N] {
     let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
     let kernel_width = shape.kernel_width;
@@ -52,11 +53,11 @@ unsafe fn tile<L: Lanes, const N: usize>(
             (out_y, out_x) = (out_y + 1, 0);
         }
     }
-    // SAFETY: the caller runs on `L`'s CPU.
-    let mut sums = [[unsafe { L::zero() }; 2]; N];
-    for kernel_y in 0..shape.kernel_height {
+    for kernel_y in taps.rows {
         let row_taps = (kernel_y * kernel_width) * in_channels * out_channels + channel;
-        if let Some(row_first) = whole_rows::<N>(shape, &pixels, count, kernel_y) {
+        let whole = taps.columns == (0..kernel_width);
+        if let Some(row_first) = whole_rows::<N>(shape, &pixels, count, kernel_y).filter(|_| whole)
+        {
             let run = (row_taps, kernel_width * in_channels);
             // SAFETY: every used pixel's run of the kernel row is inside the input; the
             // caller's promises cover the rest.
@@ -65,7 +66,7 @@ unsafe fn tile<L: Lanes, const N: usize>(
             };
             continue;
         }
-        for kernel_x in 0..kernel_width {
+        for kernel_x in taps.columns.clone() {
             let offsets = tap_offsets::<N>(shape, &pixels, count, (kernel_y, kernel_x));
             let run = (
                 row_taps + kernel_x * in_channels * out_channels,
@@ -183,6 +184,51 @@ unsafe fn store_tile<L: Lanes>(
     }
 }
 
+/// Kernel taps of one pass over a tile: rows x columns of the kernel.
+#[derive(Clone, Debug, PartialEq, Eq)]
+struct Taps {
+    rows: core::ops::Range<usize>,
+    columns: core::ops::Range<usize>,
+}
+
+/// A channel block's weights above this many bytes are walked a kernel row at a time, or a
+/// tap at a time if a row is still larger. Their rows lie `4 out_channels` bytes apart, a
+/// power of two that uses only a fraction of the L2 cache's sets (1/16 of them at 512
+/// channels: 128 KB of 2 MB), so ResNet layer4's 590 KB block came from L3 again for every
+/// pixel tile; a tap of it (64 KB) stays.
+const CHUNKED_BLOCK_BYTES: usize = 96 * 1024;
+
+/// The passes over each tile, in kernel order: one for the whole kernel, or one per row, or
+/// one per tap, whichever first keeps a channel block's weights under
+/// [`CHUNKED_BLOCK_BYTES`].
+fn passes(shape: &ConvShape, block_channels: usize) -> impl Iterator<Item = Taps> + Clone {
+    let (height, width) = (shape.kernel_height, shape.kernel_width);
+    let tap_bytes = shape.in_channels * block_channels * 4;
+    let (row_chunks, column_chunks) = if height * width * tap_bytes <= CHUNKED_BLOCK_BYTES {
+        (1, 1)
+    } else if width * tap_bytes <= CHUNKED_BLOCK_BYTES {
+        (height, 1)
+    } else {
+        (height, width)
+    };
+    (0..row_chunks).flat_map(move |row| {
+        (0..column_chunks).map(move |column| match (row_chunks, column_chunks) {
+            (1, _) => Taps {
+                rows: 0..height,
+                columns: 0..width,
+            },
+            (_, 1) => Taps {
+                rows: row..row + 1,
+                columns: 0..width,
+            },
+            _ => Taps {
+                rows: row..row + 1,
+                columns: column..column + 1,
+            },
+        })
+    })
+}
+
 /// The whole convolution, tiles of `N` consecutive output positions.
 ///
 /// # Safety
@@ -196,20 +242,90 @@ pub(crate) unsafe fn conv<L: Lanes, const N: usize>(
     accumulate: Accumulate,
 ) {
     let positions = shape.out_height() * shape.out_width();
-    // Channel blocks outside, pixels inside: a block's weights (up to 590 KB, ResNet layer4)
-    // stay in the L2 cache while every pixel reads them, instead of the whole kernel being
-    // streamed from L3 once per pixel tile.
-    for channel in (0..shape.out_channels).step_by(2 * L::WIDTH) {
-        for first in (0..positions).step_by(N) {
-            let count = (positions - first).min(N);
-            // SAFETY: the caller vouches for the CPU and the lengths; the pixels are in the
-            // output and the channel block inside `out_channels`.
-            unsafe {
-                let sums = tile::<L, N>(shape, (input, weight), first, count, channel);
-                let at = (first, channel);
-                let out = (bias, &mut *output);
-                store_tile::<L>(&sums[..count], out, shape.out_channels, at, accumulate);
+    let out_channels = shape.out_channels;
+    // Between passes the partial sums wait in the output, which an overwriting convolution
+    // may use; each pixel's FMA chain goes on in the same order, so the same bits as in one
+    // pass.
+    let whole = Taps {
+        rows: 0..shape.kernel_height,
+        columns: 0..shape.kernel_width,
+    };
+    let chunked = passes(shape, 2 * L::WIDTH);
+    let count_passes = chunked.clone().count();
+    let by_parts = accumulate == Accumulate::Overwrite && count_passes > 1;
+    // Channel blocks outside, pixels inside: a block's weights stay in the L2 cache while
+    // every pixel reads them, instead of the whole kernel being streamed from L3 once per
+    // pixel tile.
+    for channel in (0..out_channels).step_by(2 * L::WIDTH) {
+        let parts = if by_parts { count_passes } else { 1 };
+        for (part, taps) in chunked.clone().enumerate().take(parts) {
+            let taps = if by_parts { taps } else { whole.clone() };
+            let last = part + 1 == parts;
+            for first in (0..positions).step_by(N) {
+                let count = (positions - first).min(N);
+                // SAFETY: the caller vouches for the CPU and the lengths; the pixels are in
+                // the output and the channel block inside `out_channels`.
+                unsafe {
+                    let start = if part == 0 {
+                        [[L::zero(); 2]; N]
+                    } else {
+                        load_partial::<L, N>(output, out_channels, (first, count), channel)
+                    };
+                    let taps = (taps.clone(), start);
+                    let sums = tile::<L, N>(shape, (input, weight), (first, count), channel, taps);
+                    if last {
+                        let at = (first, channel);
+                        let out = (bias, &mut *output);
+                        store_tile::<L>(&sums[..count], out, out_channels, at, accumulate);
+                    } else {
+                        store_partial::<L>(&sums[..count], output, out_channels, (first, channel));
+                    }
+                }
             }
+        }
+    }
+}
+
+/// The partial sums [`store_partial`] left for the tile's `count` pixels (zero past them).
+///
+/// # Safety
+/// The CPU supports `L`; the pixels and the block's `2 WIDTH` channels are in `output`.
+#[inline(always)]
+unsafe fn load_partial<L: Lanes, const N: usize>(
+    output: &[f32],
+    out_channels: usize,
+    (first, count): (usize, usize),
+    channel: usize,
+) -> [[L::Vector; 2]; N] {
+    // SAFETY: the caller runs on `L`'s CPU.
+    let mut sums = [[unsafe { L::zero() }; 2]; N];
+    for (pixel, sum) in sums.iter_mut().enumerate().take(count) {
+        let from = &output[(first + pixel) * out_channels + channel..][..2 * L::WIDTH];
+        // SAFETY: `from` holds 2 WIDTH floats; the caller runs on `L`'s CPU.
+        unsafe {
+            *sum = [L::load(from.as_ptr()), L::load(from.as_ptr().add(L::WIDTH))];
+        }
+    }
+    sums
+}
+
+/// Stores a tile's partial sums, without the bias, where [`load_partial`] finds them.
+///
+/// # Safety
+/// The CPU supports `L`; the pixels and the block's `2 WIDTH` channels are in `output`.
+#[inline(always)]
+unsafe fn store_partial<L: Lanes>(
+    sums: &[[L::Vector; 2]],
+    output: &mut [f32],
+    out_channels: usize,
+    (first, channel): (usize, usize),
+) {
+    for (pixel, sum) in sums.iter().enumerate() {
+        let to = &mut output[(first + pixel) * out_channels + channel..][..2 * L::WIDTH];
+        // SAFETY: `to` holds 2 WIDTH floats; the caller runs on `L`'s CPU.
+        unsafe {
+            L::store(to.as_mut_ptr(), sum[0]);
+            L::store(to.as_mut_ptr().add(L::WIDTH), sum[1]);
         }
     }
 }
@@ -229,7 +345,17 @@ pub(crate) unsafe fn conv_pixel<L: Lanes>(
         // SAFETY: as in `conv`; `output` is the pixel's channels, so pixel 0 is inside it.
         unsafe {
             let position = pixel.0 * shape.out_width() + pixel.1;
-            let sums = tile::<L, 1>(shape, (input, weight), position, 1, channel);
+            let taps = Taps {
+                rows: 0..shape.kernel_height,
+                columns: 0..shape.kernel_width,
+            };
+            let sums = tile::<L, 1>(
+                shape,
+                (input, weight),
+                (position, 1),
+                channel,
+                (taps, [[L::zero(); 2]; 1]),
+            );
             let out = (bias, &mut *output);
             store_tile::<L>(
                 &sums,
