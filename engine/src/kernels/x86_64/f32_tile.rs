@@ -198,35 +198,38 @@ struct Taps {
 /// pixel tile; a tap of it (64 KB) stays.
 const CHUNKED_BLOCK_BYTES: usize = 96 * 1024;
 
-/// The passes over each tile, in kernel order: one for the whole kernel, or one per row, or
-/// one per tap, whichever first keeps a channel block's weights under
-/// [`CHUNKED_BLOCK_BYTES`].
-fn passes(shape: &ConvShape, block_channels: usize) -> impl Iterator<Item = Taps> + Clone {
+/// The passes over each tile, in kernel order, as `(row chunks, column chunks)`: the whole
+/// kernel, or one pass per row, or one per tap, whichever first keeps a channel block's
+/// weights under [`CHUNKED_BLOCK_BYTES`]. Between passes the partial sums wait in the output,
+/// which only an overwriting convolution may use.
+fn passes(shape: &ConvShape, block_channels: usize, accumulate: Accumulate) -> (usize, usize) {
     let (height, width) = (shape.kernel_height, shape.kernel_width);
     let tap_bytes = shape.in_channels * block_channels * 4;
-    let (row_chunks, column_chunks) = if height * width * tap_bytes <= CHUNKED_BLOCK_BYTES {
+    if accumulate == Accumulate::Add || height * width * tap_bytes <= CHUNKED_BLOCK_BYTES {
         (1, 1)
     } else if width * tap_bytes <= CHUNKED_BLOCK_BYTES {
         (height, 1)
     } else {
         (height, width)
-    };
-    (0..row_chunks).flat_map(move |row| {
-        (0..column_chunks).map(move |column| match (row_chunks, column_chunks) {
-            (1, _) => Taps {
-                rows: 0..height,
-                columns: 0..width,
-            },
-            (_, 1) => Taps {
-                rows: row..row + 1,
-                columns: 0..width,
-            },
-            _ => Taps {
-                rows: row..row + 1,
-                columns: column..column + 1,
-            },
-        })
-    })
+    }
+}
+
+/// Pass `part` of `passes`: its kernel rows and columns.
+fn pass_taps(shape: &ConvShape, (row_chunks, column_chunks): (usize, usize), part: usize) -> Taps {
+    let (height, width) = (shape.kernel_height, shape.kernel_width);
+    let (row, column) = (part / column_chunks, part % column_chunks);
+    Taps {
+        rows: if row_chunks == 1 {
+            0..height
+        } else {
+            row..row + 1
+        },
+        columns: if column_chunks == 1 {
+            0..width
+        } else {
+            column..column + 1
+        },
+    }
 }
 
 /// The whole convolution, tiles of `N` consecutive output positions.
@@ -243,23 +246,15 @@ pub(crate) unsafe fn conv<L: Lanes, const N: usize>(
 ) {
     let positions = shape.out_height() * shape.out_width();
     let out_channels = shape.out_channels;
-    // Between passes the partial sums wait in the output, which an overwriting convolution
-    // may use; each pixel's FMA chain goes on in the same order, so the same bits as in one
-    // pass.
-    let whole = Taps {
-        rows: 0..shape.kernel_height,
-        columns: 0..shape.kernel_width,
-    };
-    let chunked = passes(shape, 2 * L::WIDTH);
-    let count_passes = chunked.clone().count();
-    let by_parts = accumulate == Accumulate::Overwrite && count_passes > 1;
+    // Each pixel's FMA chain goes on across passes in the same order: the same bits as one.
+    let chunks = passes(shape, 2 * L::WIDTH, accumulate);
+    let parts = chunks.0 * chunks.1;
     // Channel blocks outside, pixels inside: a block's weights stay in the L2 cache while
     // every pixel reads them, instead of the whole kernel being streamed from L3 once per
     // pixel tile.
     for channel in (0..out_channels).step_by(2 * L::WIDTH) {
-        let parts = if by_parts { count_passes } else { 1 };
-        for (part, taps) in chunked.clone().enumerate().take(parts) {
-            let taps = if by_parts { taps } else { whole.clone() };
+        for part in 0..parts {
+            let taps = pass_taps(shape, chunks, part);
             let last = part + 1 == parts;
             for first in (0..positions).step_by(N) {
                 let count = (positions - first).min(N);
