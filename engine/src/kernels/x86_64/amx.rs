@@ -34,6 +34,7 @@ use core::arch::x86_64::{
 };
 
 use super::avx512::Avx512;
+use super::int8::PixelTile;
 use crate::kernels::ops::Activation;
 use crate::kernels::scalar::assert_int8_lengths;
 use crate::kernels::{Accumulate, ConvShape, DigitRows, Kernels, QUAD, int8_quad_index};
@@ -191,21 +192,6 @@ const MAX_IN_CHANNELS: usize = 512;
 /// are packed once for all of them.
 const GROUP_PIXELS: usize = 8 * BLOCK_PIXELS;
 
-/// Input coordinates of kernel tap (0, 0) for each pixel of a group, negative in the
-/// padding: worked out once per group, not once per tap (a division per pixel).
-fn group_origins(shape: &ConvShape, first: usize, count: usize) -> [(isize, isize); GROUP_PIXELS] {
-    let out_width = shape.out_width();
-    let mut origins = [(0, 0); GROUP_PIXELS];
-    for (pixel, origin) in origins.iter_mut().enumerate().take(count) {
-        let position = first + pixel;
-        *origin = (
-            ((position / out_width) * shape.stride) as isize - shape.padding_height as isize,
-            ((position % out_width) * shape.stride) as isize - shape.padding_width as isize,
-        );
-    }
-    origins
-}
-
 /// The input row each of a block's pixels (`origins`, the first `count` used) reads at a
 /// kernel tap, `None` in the padding or past the last pixel.
 fn tap_rows(
@@ -268,7 +254,8 @@ unsafe fn conv(
         for group in (0..positions).step_by(GROUP_PIXELS) {
             let group_count = (positions - group).min(GROUP_PIXELS);
             let mut totals = [[_mm512_setzero_ps(); 2]; GROUP_PIXELS];
-            let origins = group_origins(shape, group, group_count);
+            // Worked out once per group, not once per tap (a division per pixel).
+            let origins = PixelTile::<GROUP_PIXELS>::new(shape, group, group_count).origins;
             for kernel_y in 0..shape.kernel_height {
                 for kernel_x in 0..shape.kernel_width {
                     let tap = kernel_y * shape.kernel_width + kernel_x;

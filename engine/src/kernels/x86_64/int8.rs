@@ -230,14 +230,14 @@ unsafe impl Int8Lanes for VnniZmm {
 /// The pixels of one tile: how many there are (`count <= P`; the last tile of a map may be
 /// short) and where they read.
 #[derive(Clone, Copy, Debug)]
-struct PixelTile<const P: usize> {
+pub(crate) struct PixelTile<const P: usize> {
     count: usize,
     /// Input coordinates of kernel tap (0, 0) per pixel, negative inside the padding.
-    origins: [(isize, isize); P],
+    pub(crate) origins: [(isize, isize); P],
 }
 
 impl<const P: usize> PixelTile<P> {
-    fn new(shape: &ConvShape, first: usize, count: usize) -> Self {
+    pub(crate) fn new(shape: &ConvShape, first: usize, count: usize) -> Self {
         let out_width = shape.out_width();
         let origins = core::array::from_fn(|pixel| {
             let position = first + pixel;
