@@ -3,7 +3,7 @@
 
 use crate::config::{ModelConfig, UNET_LEVELS};
 use crate::kernels::ops::{self, Activation};
-use crate::kernels::{self, Accumulate, Activations, ConvShape, Kernels};
+use crate::kernels::{self, Accumulate, Activations, ConvShape, Kernels, QuantizeScratch};
 use crate::weights::{Conv, ConvF32, DenoiserWeights, Norm, ResidualBlock};
 
 /// Diffusion Policy builds the head's Conv1dBlock without passing `n_groups`, so it always
@@ -17,6 +17,8 @@ pub struct DenoiserScratch<'a> {
     pub skips: [&'a mut [f32]; UNET_LEVELS - 1],
     /// FiLM scale and bias of the block being run.
     pub film: &'a mut [f32],
+    /// A convolution's input quantized for int8 weights.
+    pub quantized: QuantizeScratch<'a>,
 }
 
 struct Context<'a> {
@@ -26,6 +28,7 @@ struct Context<'a> {
     /// `Mish(g)`: the FiLM layers' input (the time-embedding part is precomputed).
     activated_cond: &'a [f32],
     film: &'a mut [f32],
+    quantized: QuantizeScratch<'a>,
 }
 
 impl Context<'_> {
@@ -45,7 +48,7 @@ impl Context<'_> {
             conv.bias,
             output,
             accumulate,
-            Activations::F32,
+            Activations::Codes(&mut self.quantized),
         );
     }
 
@@ -200,6 +203,7 @@ pub fn predict_noise(
         work: [w0, w1, w2, w3],
         skips: [skip1, skip2],
         film,
+        quantized,
     } = scratch;
     let mut context = Context {
         kernels,
@@ -207,6 +211,7 @@ pub fn predict_noise(
         step,
         activated_cond,
         film,
+        quantized,
     };
     let horizon = config.horizon as usize;
     let dims = config.down_dims.map(|d| d as usize);

@@ -10,8 +10,9 @@ use crate::error::Error as LoadError;
 /// First eight bytes of every weights file.
 pub const MAGIC: [u8; 8] = *b"SCDPWTS\0";
 /// The format version this engine reads and the tool writes. Version 2: int8 kernels of
-/// 2-D convolutions are stored in input-channel quads (docs/FORMAT.md).
-pub const VERSION: u32 = 2;
+/// 2-D convolutions are stored in input-channel quads; version 3: those of 1-D convolutions
+/// too (docs/FORMAT.md).
+pub const VERSION: u32 = 3;
 /// Every section and tensor starts at a multiple of this, so SIMD loads can be aligned.
 pub const ALIGN: usize = 64;
 pub const HEADER_BYTES: usize = 64;
@@ -360,13 +361,16 @@ impl<'w> WeightsFile<'w> {
         }
         let offset = usize::try_from(u64_at(row, 80)).map_err(|_| bad)?;
         let byte_len = usize::try_from(u64_at(row, 88)).map_err(|_| bad)?;
-        // An int8 2-D convolution kernel `[kh, kw, in, out]` is stored in input-channel quads,
-        // `in` padded to a multiple of 4 (crate::kernels::int8_quad_index).
+        // An int8 convolution kernel, `[kh, kw, in, out]` or `[k, in, out]`, is stored in
+        // input-channel quads, `in` padded to a multiple of 4 (crate::kernels::int8_quad_index).
+        let padded = |taps: usize, input: usize, output: usize| {
+            taps.checked_mul(crate::kernels::int8_quads(input) * crate::kernels::QUAD)
+                .and_then(|n| n.checked_mul(output))
+                .ok_or(bad)
+        };
         let stored = match (dtype, rank) {
-            (DType::I8, 4) => (dims[0] * dims[1])
-                .checked_mul(crate::kernels::int8_quads(dims[2]) * crate::kernels::QUAD)
-                .and_then(|n| n.checked_mul(dims[3]))
-                .ok_or(bad)?,
+            (DType::I8, 4) => padded(dims[0] * dims[1], dims[2], dims[3])?,
+            (DType::I8, 3) => padded(dims[0], dims[1], dims[2])?,
             _ => elements,
         };
         if stored.checked_mul(dtype.size()) != Some(byte_len) {

@@ -47,9 +47,9 @@ pub struct ArenaPlan {
     pub activated_cond: usize,
     /// FiLM scale and bias of the residual block being run.
     pub film: usize,
-    /// Int8 weights only: a trunk layer's input quantized to two digit planes (twice the
-    /// bytes of the largest trunk activation, in f32 units) and one scale per pixel of it
-    /// (`kernels::QuantizeScratch`).
+    /// Int8 weights only: a layer's input quantized, a trunk layer's to two digit planes
+    /// (twice the bytes of the largest trunk activation, in f32 units), a U-Net layer's to
+    /// i16 codes, and one scale per pixel or position (`kernels::QuantizeScratch`).
     pub quantized: usize,
     pub quantized_scales: usize,
 
@@ -263,11 +263,13 @@ impl Lengths {
         // convolutions per block, 12 blocks, plus the resampling layers and the head).
         let unet_naive = 3 * 12 * horizon * 2 * widest + 6 * horizon * widest;
 
-        // Int8 activations are the trunk's only (the U-Net's int8 weights are weight-only):
-        // its inputs, the image included should the stem be int8, fit one activation
-        // buffer, and their rows are at most the image's pixels.
-        let quantized = aligned((2 * trunk_activation).div_ceil(4));
-        let quantized_scales = aligned(pixels);
+        // Int8 layer inputs, quantized one layer at a time: the trunk's (the image included
+        // should the stem be int8) fit one activation buffer as two digit planes, with rows
+        // at most the image's pixels; the U-Net's are at most `horizon` rows of an up
+        // block's concatenated input, as i16 codes padded to whole quads.
+        let unet_codes = 2 * horizon * 4 * (2 * widest).div_ceil(4);
+        let quantized = aligned(max(2 * trunk_activation, unet_codes).div_ceil(4));
+        let quantized_scales = aligned(max(pixels, horizon));
         let persistent = features
             + states
             + anchors

@@ -359,6 +359,10 @@ impl<'w, 'a> Policy<'w, 'a> {
                 work,
                 skips,
                 film: &mut *buffers.film,
+                quantized: QuantizeScratch {
+                    values: &mut *buffers.quantized.values,
+                    scales: &mut *buffers.quantized.scales,
+                },
             };
             denoiser::predict_noise(
                 kernels,

@@ -36,7 +36,7 @@ fn conv_norm(
         layer.conv.bias,
         output,
         Accumulate::Overwrite,
-        Activations::Int8(quantized),
+        Activations::Digits(quantized),
     );
     let output = &mut output[..shape.output_len()];
     match &layer.norm {
@@ -260,7 +260,7 @@ pub fn encode(
                 projection.bias,
                 store.map,
                 Accumulate::Overwrite,
-                Activations::Int8(quantized),
+                Activations::Digits(quantized),
             );
         }
     };

@@ -7,7 +7,7 @@ use scdp_engine::kernels::ops::{self, Activation};
 use scdp_engine::kernels::scalar::Scalar;
 #[cfg(target_arch = "x86_64")]
 use scdp_engine::kernels::x86_64::amx::Amx;
-use scdp_engine::kernels::{Accumulate, ConvShape, DigitRows, Kernels};
+use scdp_engine::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels};
 
 struct Lcg(u64);
 
@@ -536,10 +536,302 @@ fn int8_convolution_sums_exactly_per_tap_then_scales() {
     }
 }
 
+/// Whole codes padded to quads, as `quantize_rows_codes` writes them: `rows` rows of
+/// `channels` codes, each followed by zeros up to a multiple of 4.
+fn padded_codes(codes: &[i32], channels: usize) -> Vec<i16> {
+    let stride = channels.div_ceil(4) * 4;
+    let mut padded = vec![0i16; codes.len() / channels.max(1) * stride];
+    for (row, values) in codes.chunks_exact(channels).enumerate() {
+        for (target, &code) in padded[row * stride..].iter_mut().zip(values) {
+            *target = code as i16;
+        }
+    }
+    padded
+}
+
+/// A random int8 convolution on signed codes: the codes (unpadded), their scales, the
+/// weights (`[taps, in, out]` and packed in quads), weight scales and bias.
+struct CodeCase {
+    shape: ConvShape,
+    codes: Vec<i32>,
+    row_scales: Vec<f32>,
+    weight: Vec<i8>,
+    packed: Vec<i8>,
+    weight_scales: Vec<f32>,
+    bias: Vec<f32>,
+}
+
+impl CodeCase {
+    fn random(rng: &mut Lcg, shape: ConvShape) -> Self {
+        let rows = shape.in_height * shape.in_width;
+        let codes = random_codes(rng, shape.input_len(), false)
+            .into_iter()
+            .map(|code| if rng.below(2) == 0 { -code } else { code })
+            .collect();
+        let weight = random_weights_with_extremes(rng, shape.weight_len());
+        let mut packed = vec![1i8; shape.int8_weight_len()];
+        let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+        scdp_engine::kernels::pack_int8_quads(&weight, in_channels, out_channels, &mut packed);
+        CodeCase {
+            shape,
+            codes,
+            row_scales: (0..rows).map(|_| 0.01 + rng.next().abs()).collect(),
+            weight,
+            packed,
+            weight_scales: (0..out_channels)
+                .map(|_| 0.001 + rng.next().abs() * 0.01)
+                .collect(),
+            bias: rng.vec(out_channels),
+        }
+    }
+
+    fn run(&self, kernels: &dyn Kernels, accumulate: Accumulate, initial: &[f32]) -> Vec<f32> {
+        let codes = padded_codes(&self.codes, self.shape.in_channels);
+        let input = CodeRows {
+            codes: &codes,
+            scales: &self.row_scales,
+        };
+        let mut output = initial.to_vec();
+        kernels.conv_int8_codes(
+            &self.shape,
+            &input,
+            &self.packed,
+            &self.weight_scales,
+            &self.bias,
+            &mut output,
+            accumulate,
+        );
+        output
+    }
+}
+
+/// The U-Net's int8 convolutions (signed codes) against the textbook: exact integer sums per
+/// tap, scaled by the tap's row scale, in f64; and bit for bit what `conv_int8` computes on
+/// the digit planes of the same codes (one contract, two storage forms).
 #[test]
-fn weight_only_int8_matches_dequantized_f32_kernels() {
+fn int8_code_convolution_sums_exactly_per_tap_then_scales() {
+    let mut rng = Lcg(19);
+    for case in 0..60 {
+        let kernel = [1, 3, 5][rng.below(3)];
+        let stride = 1 + rng.below(2);
+        let padding = rng.below(kernel / 2 + 1);
+        let length = kernel + rng.below(17);
+        let shape = ConvShape::sequence(
+            length,
+            1 + rng.below(70),
+            1 + rng.below(300), // crosses the reference's 128-channel blocks
+            kernel,
+            stride,
+            padding,
+        );
+        let code_case = CodeCase::random(&mut rng, shape);
+        let CodeCase {
+            codes,
+            row_scales,
+            weight,
+            weight_scales,
+            bias,
+            ..
+        } = &code_case;
+        let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+        let output = code_case.run(
+            &Scalar,
+            Accumulate::Overwrite,
+            &vec![f32::NAN; shape.output_len()],
+        );
+        for t in 0..shape.out_width() {
+            for o in 0..out_channels {
+                let mut total = 0.0f64;
+                let mut magnitude = 0.0f64;
+                for tap in 0..kernel {
+                    let Some(row) = (t * stride + tap)
+                        .checked_sub(padding)
+                        .filter(|&row| row < length)
+                    else {
+                        continue;
+                    };
+                    let sum: i64 = (0..in_channels)
+                        .map(|i| {
+                            codes[row * in_channels + i] as i64
+                                * weight[(tap * in_channels + i) * out_channels + o] as i64
+                        })
+                        .sum();
+                    total += sum as f64 * row_scales[row] as f64;
+                    magnitude += (sum as f64 * row_scales[row] as f64).abs();
+                }
+                let expected = total * weight_scales[o] as f64 + bias[o] as f64;
+                let found = output[t * out_channels + o] as f64;
+                // Only the f32 scaling rounds: a few ulps of the summed magnitudes.
+                let tolerance =
+                    1e-6 * (magnitude * weight_scales[o] as f64 + bias[o].abs() as f64).max(1e-6);
+                assert!(
+                    (found - expected).abs() <= tolerance,
+                    "case {case} ({t},{o}): {found} vs {expected}"
+                );
+            }
+        }
+        let planes = digit_planes(codes);
+        let digits = DigitRows::from_planes(&planes, row_scales, false);
+        let mut from_digits = vec![f32::NAN; shape.output_len()];
+        Scalar.conv_int8(
+            &shape,
+            &digits,
+            &code_case.packed,
+            weight_scales,
+            bias,
+            &mut from_digits,
+            Accumulate::Overwrite,
+        );
+        assert_same_bits(
+            &output,
+            &from_digits,
+            &format!("case {case}: codes vs digits"),
+        );
+    }
+}
+
+/// Every backend's int8 convolution on signed codes gives the scalar reference's bits: the
+/// U-Net's shapes (lengths 16, 8, 4, the k3 s2 downsampling, 1x1 residuals, the 10-channel
+/// sample), channel counts off the tiles (in: not whole quads; out: one-vector and scalar
+/// tails), a few 2-D maps, and both accumulate modes.
+#[test]
+fn int8_code_convolution_is_bit_identical_on_every_backend() {
+    let mut rng = Lcg(29);
+    let mut shapes = vec![
+        ConvShape::sequence(16, 10, 128, 5, 1, 2),
+        ConvShape::sequence(16, 128, 128, 5, 1, 2),
+        ConvShape::sequence(16, 128, 128, 3, 2, 1),
+        ConvShape::sequence(8, 128, 256, 1, 1, 0),
+        ConvShape::sequence(4, 768, 256, 5, 1, 2),
+        ConvShape::sequence(4, 384, 384, 5, 1, 2),
+        ConvShape::square((5, 7, 12), 40, 3, 1, 1),
+        ConvShape::square((6, 6, 9), 17, 3, 2, 1),
+    ];
+    for _ in 0..30 {
+        let kernel = [1, 3, 5][rng.below(3)];
+        shapes.push(ConvShape::sequence(
+            1 + rng.below(20),
+            1 + rng.below(90),
+            [1, 5, 8, 16, 24, 31, 32, 40, 64, 96, 130][rng.below(11)],
+            kernel,
+            1 + rng.below(2),
+            kernel / 2,
+        ));
+    }
+    let shapes: Vec<ConvShape> = shapes
+        .into_iter()
+        .filter(|shape| shape.in_width + 2 * shape.padding_width >= shape.kernel_width)
+        .collect();
+    let backends = backends();
+    for (case, &shape) in shapes.iter().enumerate() {
+        let code_case = CodeCase::random(&mut rng, shape);
+        let initial = rng.vec(shape.output_len());
+        for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
+            let expected = code_case.run(&Scalar, accumulate, &initial);
+            for (name, kernels) in &backends {
+                let found = code_case.run(*kernels, accumulate, &initial);
+                let what = format!("{name} case {case} {shape:?} {accumulate:?}");
+                assert_same_bits(&found, &expected, &what);
+            }
+        }
+    }
+}
+
+/// The codes' sums are exact up to `MAX_DIGIT_CHANNELS` input channels at the extremes:
+/// every code +-16383 against weights of -128 and 127 (the largest products, either sign),
+/// on every backend, against the f64 value of the exact sum.
+#[test]
+fn int8_code_convolution_is_exact_at_the_extremes() {
+    let channels = scdp_engine::kernels::MAX_DIGIT_CHANNELS;
+    let shape = ConvShape::sequence(4, channels, 32, 1, 1, 0);
+    for (positive_codes, weight_value) in [(true, i8::MIN), (false, i8::MIN), (true, i8::MAX)] {
+        let code = if positive_codes { 16383 } else { -16383 };
+        let codes = vec![code as i16; shape.input_len()];
+        let row_scales = vec![1.0f32; 4];
+        let weight = vec![weight_value; shape.weight_len()];
+        let mut packed = vec![0i8; shape.int8_weight_len()];
+        scdp_engine::kernels::pack_int8_quads(&weight, channels, 32, &mut packed);
+        let ones = vec![1.0f32; 32];
+        let zeros = vec![0.0f32; 32];
+        let exact = (code as i64 * weight_value as i64 * channels as i64) as f64;
+        for (name, kernels) in backends() {
+            let mut output = vec![f32::NAN; shape.output_len()];
+            let input = CodeRows {
+                codes: &codes,
+                scales: &row_scales,
+            };
+            kernels.conv_int8_codes(
+                &shape,
+                &input,
+                &packed,
+                &ones,
+                &zeros,
+                &mut output,
+                Accumulate::Overwrite,
+            );
+            for &value in &output {
+                assert_eq!(
+                    value as f64, exact as f32 as f64,
+                    "{name} {code} x {weight_value}"
+                );
+            }
+        }
+    }
+}
+
+/// Codes quantize within half a step of the input, keep the sign, pad rows to whole quads
+/// with zeros, and give the same codes and scales on every backend (NaN scale, zero codes
+/// for a non-finite row).
+#[test]
+fn code_quantization_round_trips_and_pads_rows() {
+    let mut rng = Lcg(41);
+    for (rows, row_len) in [(16, 10), (4, 768), (8, 257), (1, 3)] {
+        let mut input: Vec<f32> = rng.vec(rows * row_len).iter().map(|x| x * 4.0).collect();
+        input[..row_len].fill(0.0);
+        if rows > 2 {
+            input[2 * row_len + 1] = f32::NAN;
+        }
+        let stride = row_len.div_ceil(4) * 4;
+        let quantize = |kernels: &dyn Kernels| {
+            let mut codes = vec![7i16; rows * stride];
+            let mut scales = vec![0.0f32; rows];
+            kernels.quantize_codes(&input, row_len, &mut codes, &mut scales);
+            (codes, scales)
+        };
+        let (codes, scales) = quantize(&Scalar);
+        for row in 0..rows {
+            let values = &input[row * row_len..][..row_len];
+            let row_codes = &codes[row * stride..][..stride];
+            assert!(
+                row_codes[row_len..].iter().all(|&c| c == 0),
+                "padding of row {row}"
+            );
+            if values.iter().any(|v| !v.is_finite()) {
+                assert!(scales[row].is_nan());
+                assert!(row_codes.iter().all(|&c| c == 0));
+                continue;
+            }
+            for (&value, &code) in values.iter().zip(row_codes) {
+                assert!(code.abs() <= 16383);
+                // Half a step, plus the f32 roundings of `x * (16383 / max)` (a few 2^-24
+                // of a code up to 16383: under 0.004 of a step).
+                let error = (value as f64 - code as f64 * scales[row] as f64).abs();
+                let tolerance = 0.504 * scales[row] as f64;
+                assert!(error <= tolerance, "{value} -> {code}");
+            }
+        }
+        for (name, kernels) in backends() {
+            let (found_codes, found_scales) = quantize(kernels);
+            assert_eq!(found_codes, codes, "{name} codes");
+            assert_same_bits(&found_scales, &scales, &format!("{name} scales"));
+        }
+    }
+}
+
+#[test]
+fn weight_only_int8_matrix_vector_product_matches_f64() {
     for (name, kernels) in backends() {
-        weight_only_int8_matches_dequantized(name, kernels);
+        weight_only_int8_matvec_matches_f64(name, kernels);
     }
 }
 
@@ -556,52 +848,8 @@ fn random_weights_with_extremes(rng: &mut Lcg, len: usize) -> Vec<i8> {
         .collect()
 }
 
-fn weight_only_int8_matches_dequantized(backend: &str, kernels: &dyn Kernels) {
+fn weight_only_int8_matvec_matches_f64(backend: &str, kernels: &dyn Kernels) {
     let mut rng = Lcg(23);
-    for case in 0..40 {
-        let kernel = [1, 3, 5][rng.below(3)];
-        let shape = ConvShape::sequence(
-            kernel + rng.below(14),
-            1 + rng.below(50),
-            1 + rng.below(200),
-            kernel,
-            1 + rng.below(2),
-            rng.below(kernel / 2 + 1),
-        );
-        let input = rng.vec(shape.input_len());
-        let weight = random_weights_with_extremes(&mut rng, shape.weight_len());
-        let scales: Vec<f32> = (0..shape.out_channels)
-            .map(|_| 0.001 + rng.next().abs() * 0.01)
-            .collect();
-        let bias = rng.vec(shape.out_channels);
-        let dequantized: Vec<f32> = weight
-            .iter()
-            .enumerate()
-            .map(|(i, &q)| q as f32 * scales[i % shape.out_channels])
-            .collect();
-        for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
-            let before = rng.vec(shape.output_len());
-            let mut expected = before.clone();
-            Scalar.conv(
-                &shape,
-                &input,
-                &dequantized,
-                &bias,
-                &mut expected,
-                accumulate,
-            );
-            let mut found = before;
-            kernels.conv_weight_int8(
-                &shape, &input, &weight, &scales, &bias, &mut found, accumulate,
-            );
-            for (i, (f, e)) in found.iter().zip(&expected).enumerate() {
-                assert!(
-                    (f - e).abs() <= 1e-4 * (1.0 + e.abs()),
-                    "{backend} case {case} {accumulate:?} [{i}]: {f} vs {e}"
-                );
-            }
-        }
-    }
     for (rows, cols) in [(37, 91), (1, 7), (4, 32), (9, 784), (3, 45)] {
         let weight = random_weights_with_extremes(&mut rng, rows * cols);
         let scales: Vec<f32> = (0..rows).map(|_| 0.002 + rng.next().abs() * 0.01).collect();
@@ -625,8 +873,8 @@ fn weight_only_int8_matches_dequantized(backend: &str, kernels: &dyn Kernels) {
 
 /// The U-Net's sequence shapes and their awkward cousins, on every backend against the
 /// textbook convolution: lengths around the 4-position tiles, channel counts that leave
-/// one-vector (8 or 16 wide) and scalar tails, the k3 s2 p1 downsampling, and int8 weight-only against the
-/// same textbook convolution of the dequantized weights.
+/// one-vector (8 or 16 wide) and scalar tails, the k3 s2 p1 downsampling (f32 weights; int8
+/// ones take int8 activations, tested below).
 #[test]
 fn sequence_convolutions_match_pytorch_definition() {
     let mut rng = Lcg(31);
@@ -653,23 +901,9 @@ fn sequence_convolutions_match_pytorch_definition() {
             let input_ct = rng.vec(shape.input_len());
             let input = to_hwc(&input_ct, shape.in_channels, 1, shape.in_width);
             let bias = rng.vec(shape.out_channels);
-            let quantized = random_weights_with_extremes(&mut rng, shape.weight_len());
-            let scales: Vec<f32> = (0..shape.out_channels)
-                .map(|_| 0.001 + rng.next().abs() * 0.01)
-                .collect();
-            // Row-major PyTorch `[out, in, k]` weights, f32 and dequantized int8.
+            // Row-major PyTorch `[out, in, k]` weights.
             let float_oik = rng.vec(shape.weight_len());
             let (k, i, o) = (shape.kernel_width, shape.in_channels, shape.out_channels);
-            let mut int8_packed = vec![0i8; shape.weight_len()];
-            let mut dequantized_oik = vec![0.0; shape.weight_len()];
-            for (index, &q) in quantized.iter().enumerate() {
-                // `quantized` is already packed `[k, in, out]`.
-                let (tap, rest) = (index / (i * o), index % (i * o));
-                let (input_channel, output_channel) = (rest / o, rest % o);
-                int8_packed[index] = q;
-                dequantized_oik[(output_channel * i + input_channel) * k + tap] =
-                    q as f32 * scales[output_channel];
-            }
             let float_packed = pack_oihw(&float_oik, o, i, 1, k);
             let what = format!("{name} {shape:?}");
             for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
@@ -692,25 +926,6 @@ fn sequence_convolutions_match_pytorch_definition() {
                 let mut output = before.clone();
                 kernels.conv(shape, &input, &float_packed, &bias, &mut output, accumulate);
                 assert_close(&output, &plus_before(expected), &magnitude, &what);
-
-                let (expected, magnitude) =
-                    reference_conv(shape, &input_ct, &dequantized_oik, &bias);
-                let mut output = before.clone();
-                kernels.conv_weight_int8(
-                    shape,
-                    &input,
-                    &int8_packed,
-                    &scales,
-                    &bias,
-                    &mut output,
-                    accumulate,
-                );
-                assert_close(
-                    &output,
-                    &plus_before(expected),
-                    &magnitude,
-                    &format!("int8 weights {what}"),
-                );
             }
         }
     }

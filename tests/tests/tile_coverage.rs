@@ -8,7 +8,7 @@
 use std::sync::Mutex;
 
 use scdp_engine::kernels::x86_64::amx::Amx;
-use scdp_engine::kernels::{Accumulate, ConvShape, DigitRows, Kernels, scalar::Scalar};
+use scdp_engine::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels, scalar::Scalar};
 use scdp_engine::{ArenaPlan, Model, ModelConfig, Policy};
 use scdp_tests::synthetic_weights_file_as;
 use weights_tool::Quant;
@@ -85,17 +85,17 @@ impl Kernels for Recording {
         )
     }
 
-    fn conv_weight_int8(
+    fn conv_int8_codes(
         &self,
         shape: &ConvShape,
-        input: &[f32],
+        input: &CodeRows<'_>,
         weight: &[i8],
         weight_scales: &[f32],
         bias: &[f32],
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        Scalar.conv_weight_int8(
+        Scalar.conv_int8_codes(
             shape,
             input,
             weight,

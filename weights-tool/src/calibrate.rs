@@ -16,7 +16,7 @@ use faer::{Accum, Mat, Par};
 use indicatif::{ProgressBar, ProgressStyle};
 use scdp_engine::format::WeightsFile;
 use scdp_engine::kernels::ops::Activation;
-use scdp_engine::kernels::{self, Accumulate, Backend, ConvShape, DigitRows, Kernels};
+use scdp_engine::kernels::{self, Accumulate, Backend, CodeRows, ConvShape, DigitRows, Kernels};
 use scdp_engine::{ArenaPlan, Camera, Model, ModelConfig, Noise, Policy};
 
 use crate::run::RunInputs;
@@ -244,17 +244,17 @@ impl Kernels for Recorder {
         );
     }
 
-    fn conv_weight_int8(
+    fn conv_int8_codes(
         &self,
         shape: &ConvShape,
-        input: &[f32],
+        input: &CodeRows<'_>,
         weight: &[i8],
         weight_scales: &[f32],
         bias: &[f32],
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        self.inner.conv_weight_int8(
+        self.inner.conv_int8_codes(
             shape,
             input,
             weight,

@@ -706,21 +706,18 @@ pub fn store_keeping(
                     *q = crate::gptq::quantize(&values, scales, axis, moment, GPTQ_DAMPING)
                         .with_context(|| format!("GPTQ rounding of `{name}`"))?;
                 }
-                match (quantized, spec.dims.as_slice()) {
-                    // 2-D convolutions take int8 activations: their kernels go to the layout of
-                    // the integer dot products (docs/FORMAT.md).
-                    (Stored::Int8 { values, scales }, &[kh, kw, input, output]) => {
-                        let shape = scdp_engine::kernels::ConvShape {
-                            in_height: 1,
-                            in_width: 1,
-                            in_channels: input,
-                            out_channels: output,
-                            kernel_height: kh,
-                            kernel_width: kw,
-                            stride: 1,
-                            padding_height: 0,
-                            padding_width: 0,
-                        };
+                // Convolutions take int8 activations: their kernels go to the layout of the
+                // integer dot products (docs/FORMAT.md); FiLM matrices stay as they are.
+                let taps_in_out = match spec.dims.as_slice() {
+                    [kh, kw, input, output] => Some((kh * kw, *input, *output)),
+                    [taps, input, output] => Some((*taps, *input, *output)),
+                    _ => None,
+                };
+                match (quantized, taps_in_out) {
+                    (Stored::Int8 { values, scales }, Some((taps, input, output))) => {
+                        let shape = scdp_engine::kernels::ConvShape::sequence(
+                            taps, input, output, taps, 1, 0,
+                        );
                         let mut packed = vec![0i8; shape.int8_weight_len()];
                         scdp_engine::kernels::pack_int8_quads(&values, input, output, &mut packed);
                         Stored::Int8 {

@@ -129,14 +129,15 @@ pub fn write_weights_file(
                 let Some((scale_name, channels)) = &spec.int8_scales else {
                     bail!("internal: `{}` cannot be stored as int8", spec.name);
                 };
-                // 2-D convolution kernels are stored in input-channel quads (docs/FORMAT.md).
+                // Convolution kernels are stored in input-channel quads (docs/FORMAT.md).
+                let quads = |taps: usize, input: usize, output: usize| {
+                    taps * scdp_engine::kernels::int8_quads(input)
+                        * scdp_engine::kernels::QUAD
+                        * output
+                };
                 let stored_elements = match spec.dims.as_slice() {
-                    &[kh, kw, input, output] => {
-                        kh * kw
-                            * scdp_engine::kernels::int8_quads(input)
-                            * scdp_engine::kernels::QUAD
-                            * output
-                    }
+                    [kh, kw, input, output] => quads(kh * kw, *input, *output),
+                    [taps, input, output] => quads(*taps, *input, *output),
                     _ => elements,
                 };
                 ensure!(

@@ -336,15 +336,15 @@ pub trait Kernels: Sync {
         accumulate: Accumulate,
     );
 
-    /// [`conv`](Self::conv) with int8 weights and f32 activations (weight-only quantization):
-    /// `acc[o] = sum x * (q_w as f32)` in f32, then
-    /// `output[o] (+)= acc[o] * weight_scales[o] + bias[o]`. For memory-bound layers, where
-    /// int8 activations would only add error.
+    /// [`conv_int8`](Self::conv_int8) on the same 15-bit codes kept whole and signed
+    /// ([`CodeRows`]: i16, rows padded to whole input-channel quads), for 1-D convolutions
+    /// (`in_height == 1`, the U-Net's): the same exact per-tap code sums, scaled, summed and
+    /// stored in the same order, so every implementation gives the same bits.
     #[allow(clippy::too_many_arguments)]
-    fn conv_weight_int8(
+    fn conv_int8_codes(
         &self,
         shape: &ConvShape,
-        input: &[f32],
+        input: &CodeRows<'_>,
         weight: &[i8],
         weight_scales: &[f32],
         bias: &[f32],
@@ -375,6 +375,13 @@ pub trait Kernels: Sync {
         scales: &mut [f32],
     ) -> bool {
         ops::quantize_rows_split(input, row_len, digits, scales)
+    }
+
+    /// [`ops::quantize_rows_codes`]: per-row 15-bit symmetric quantization of `input` into
+    /// whole codes, rows padded to whole quads ([`CodeRows`]), and `scales`.
+    fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16], scales: &mut [f32]) {
+        let row_stride = int8_quads(row_len) * QUAD;
+        ops::quantize_rows_codes(input, (row_len, row_stride), codes, scales)
     }
 
     /// [`ops::group_norm`], in place.
@@ -412,6 +419,16 @@ pub struct QuantizedRows<'a> {
 /// `|code| <= 16383`, `|q_w| <= 128`, `16383 x 128 x 1024 < 2^31`. ResNet-18's widest layer
 /// has 512.
 pub const MAX_DIGIT_CHANNELS: usize = 1024;
+
+/// Activations quantized to signed 15-bit codes ([`ops::quantize_codes`]), one scale per
+/// row (position), each row padded with zero codes to whole input-channel quads
+/// (`int8_quads(channels) * 4` codes a row), so a kernel reads four codes where the weights
+/// have a quad.
+#[derive(Clone, Copy, Debug)]
+pub struct CodeRows<'a> {
+    pub codes: &'a [i16],
+    pub scales: &'a [f32],
+}
 
 /// Arena space for quantizing one layer input: its two digit planes (the high digits, then
 /// the low ones) and one scale per row.
@@ -474,16 +491,33 @@ impl QuantizeScratch<'_> {
         let nonnegative = kernels.quantize_rows(input, row_len, (high, low), scales);
         DigitRows::from_planes(&self.values[..2 * input.len()], scales, nonnegative)
     }
+
+    /// Quantizes `input`, rows of `row_len` values, to whole codes ([`CodeRows`]) in the
+    /// same bytes.
+    pub fn quantize_codes(
+        &mut self,
+        kernels: &dyn Kernels,
+        input: &[f32],
+        row_len: usize,
+    ) -> CodeRows<'_> {
+        let rows = input.len() / row_len;
+        let row_stride = int8_quads(row_len) * QUAD;
+        let codes: &mut [i16] = bytemuck::cast_slice_mut(&mut self.values[..2 * rows * row_stride]);
+        let scales = &mut self.scales[..rows];
+        kernels.quantize_codes(input, row_len, codes, scales);
+        CodeRows { codes, scales }
+    }
 }
 
-/// How a layer with int8 weights treats its input.
+/// How a layer with int8 weights quantizes its input (per row: pixel or position, 15-bit
+/// codes either way).
 #[derive(Debug)]
 pub enum Activations<'s, 'a> {
-    /// Quantized to int8 per row (pixel), integer dot products: the compute-bound trunk.
-    Int8(&'s mut QuantizeScratch<'a>),
-    /// Kept in f32, weights widened on the fly: the memory-bound U-Net, where int8
-    /// activations would add error and save no time.
-    F32,
+    /// Two digit planes for unsigned-by-signed byte dot products: the trunk, whose inputs
+    /// are ReLU outputs.
+    Digits(&'s mut QuantizeScratch<'a>),
+    /// Whole signed codes for 16-bit dot products: the U-Net, whose inputs have both signs.
+    Codes(&'s mut QuantizeScratch<'a>),
 }
 
 /// A convolution with whichever weights the file holds.
@@ -502,12 +536,13 @@ pub fn convolve(
     let output = &mut output[..shape.output_len()];
     match (*weight, activations) {
         (Weight::F32(values), _) => kernels.conv(shape, input, values, bias, output, accumulate),
-        (Weight::Int8 { values, scales }, Activations::Int8(scratch)) => {
+        (Weight::Int8 { values, scales }, Activations::Digits(scratch)) => {
             let digits = scratch.quantize(kernels, input, shape.in_channels);
             kernels.conv_int8(shape, &digits, values, scales, bias, output, accumulate)
         }
-        (Weight::Int8 { values, scales }, Activations::F32) => {
-            kernels.conv_weight_int8(shape, input, values, scales, bias, output, accumulate)
+        (Weight::Int8 { values, scales }, Activations::Codes(scratch)) => {
+            let codes = scratch.quantize_codes(kernels, input, shape.in_channels);
+            kernels.conv_int8_codes(shape, &codes, values, scales, bias, output, accumulate)
         }
     }
 }
@@ -572,7 +607,7 @@ pub fn convolve_pixel(
 }
 
 /// `output = base + W input` with whichever weights the file holds (int8 weights are
-/// weight-only: the input stays f32).
+/// weight-only here: the FiLM layers read each weight once, so the input stays f32).
 pub fn linear(
     kernels: &dyn Kernels,
     weight: &Weight<'_>,

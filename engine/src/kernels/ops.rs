@@ -317,6 +317,51 @@ pub fn quantize_split_signs(input: &[f32], high: &mut [i8], low: &mut [i8]) -> (
     (largest / SPLIT_CODE_LIMIT, lowest >= 0)
 }
 
+/// The 15-bit codes of [`quantize_split_signs`] kept whole: `scale = max |x| / 16383`,
+/// `code = round(x / scale)` (ties away from zero) in [-16383, 16383], as i16 (the U-Net's
+/// activations, signed, for 16-bit integer dot products). Returns the scale (1 for an
+/// all-zero input, NaN for a non-finite one, with zero codes).
+#[inline(always)]
+pub fn quantize_codes(input: &[f32], codes: &mut [i16]) -> f32 {
+    // As in `quantize_symmetric_signs`: one integer maximum over |x| as bits.
+    let largest_bits = input
+        .iter()
+        .fold(0u32, |largest, &x| largest.max(x.to_bits() & 0x7fff_ffff));
+    let largest = f32::from_bits(largest_bits);
+    if !largest.is_finite() || largest == 0.0 {
+        codes.fill(0);
+        return if largest == 0.0 { 1.0 } else { f32::NAN };
+    }
+    let inverse = SPLIT_CODE_LIMIT / largest;
+    for (code, &x) in codes.iter_mut().zip(input) {
+        // SAFETY: x is finite with |x| <= largest (finite, nonzero), so |x * inverse| is at
+        // most 16383 and a rounding.
+        *code = unsafe { round_half_away(x * inverse) }.clamp(-16383, 16383) as i16;
+    }
+    largest / SPLIT_CODE_LIMIT
+}
+
+/// [`quantize_codes`] per row of `row_len` values of `input`, into `codes` rows of
+/// `row_stride >= row_len` codes (the padding codes, up to whole input-channel quads, set
+/// to 0) and `scales` (one per row).
+#[inline(always)]
+pub fn quantize_rows_codes(
+    input: &[f32],
+    (row_len, row_stride): (usize, usize),
+    codes: &mut [i16],
+    scales: &mut [f32],
+) {
+    for ((row, codes), scale) in input
+        .chunks_exact(row_len)
+        .zip(codes.chunks_exact_mut(row_stride))
+        .zip(scales.iter_mut())
+    {
+        let (codes, padding) = codes.split_at_mut(row_len);
+        *scale = quantize_codes(row, codes);
+        padding.fill(0);
+    }
+}
+
 /// [`quantize_split_signs`] per row of `row_len` values of `input`, into the digit planes
 /// `high` and `low` (each as long as `input`) and `scales` (one per row); returns whether
 /// every code is nonnegative (the low digits always are).

@@ -2,8 +2,8 @@
 //! implementations are tested against it.
 
 use super::{
-    Accumulate, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS, QUAD, QuantizedRows,
-    int8_quad_index, ops,
+    Accumulate, CodeRows, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS, QUAD, QuantizedRows,
+    int8_quad_index, int8_quads, ops,
 };
 
 /// Output channels accumulated at once in the int8 kernels (an i32 block on the stack).
@@ -96,11 +96,10 @@ fn store_scaled(
     }
 }
 
-/// The slice lengths [`Kernels::conv`] and [`Kernels::conv_weight_int8`] promise (weights
-/// of either type).
-pub(crate) fn assert_conv_lengths<Weight>(
+/// The slice lengths [`Kernels::conv`] promises.
+pub(crate) fn assert_conv_lengths(
     shape: &ConvShape,
-    (input, weight, bias): (&[f32], &[Weight], &[f32]),
+    (input, weight, bias): (&[f32], &[f32], &[f32]),
     output_len: usize,
 ) {
     assert_eq!(input.len(), shape.input_len());
@@ -162,11 +161,31 @@ fn assert_int8_inputs(
     assert_eq!(bias.len(), shape.out_channels);
 }
 
+/// The slice lengths [`Kernels::conv_int8_codes`] promises.
+pub(crate) fn assert_code_lengths(
+    shape: &ConvShape,
+    input: &CodeRows<'_>,
+    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
+    output_len: usize,
+) {
+    let rows = shape.in_height * shape.in_width;
+    assert!(shape.in_channels <= MAX_DIGIT_CHANNELS);
+    assert_eq!(
+        input.codes.len(),
+        rows * int8_quads(shape.in_channels) * QUAD
+    );
+    assert_eq!(input.scales.len(), rows);
+    assert_eq!(weight.len(), shape.int8_weight_len());
+    assert_eq!(weight_scales.len(), shape.out_channels);
+    assert_eq!(bias.len(), shape.out_channels);
+    assert_eq!(output_len, shape.output_len());
+}
+
 /// The int8 convolution of output `positions` (row-major over the output map), output
 /// `channels` only: the whole reference kernel, and the tails of the SIMD ones.
 pub(crate) fn conv_int8_pixels(
     shape: &ConvShape,
-    input: &DigitRows<'_>,
+    input: &impl CodeSums,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     output: &mut [f32],
     accumulate: Accumulate,
@@ -195,7 +214,7 @@ pub(crate) fn conv_int8_pixels(
 /// `out` (the pixel's `out_channels` values), in the order [`Kernels::conv_int8`] prescribes.
 pub(crate) fn conv_int8_pixel(
     shape: &ConvShape,
-    input: &DigitRows<'_>,
+    input: &impl CodeSums,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     out: &mut [f32],
     accumulate: Accumulate,
@@ -207,14 +226,9 @@ pub(crate) fn conv_int8_pixel(
         let mut totals = [0.0f32; INT8_BLOCK];
         let totals = &mut totals[..width];
         for (row, tap) in taps_inside(shape, out_y, out_x) {
-            let high = digit_sums(shape, &input.high, weight, (row, tap), block, width);
-            let low = digit_sums(shape, &input.low, weight, (row, tap), block, width);
-            let scale = input.scales()[row];
-            for ((total, &high), &low) in totals.iter_mut().zip(&high).zip(&low) {
-                // `128 high + low` is the exact code sum (it fits i32, [`MAX_DIGIT_CHANNELS`]);
-                // the high part alone may not, so the arithmetic wraps, which is exact modulo
-                // 2^32 and therefore exact for the result.
-                let sum = high.wrapping_mul(DIGIT_BASE).wrapping_add(low);
+            let sums = input.code_sums(shape, weight, (row, tap), block, width);
+            let scale = input.row_scale(row);
+            for (total, &sum) in totals.iter_mut().zip(&sums) {
                 *total += sum as f32 * scale;
             }
         }
@@ -226,6 +240,81 @@ pub(crate) fn conv_int8_pixel(
             channels,
             accumulate,
         );
+    }
+}
+
+/// Quantized activations as the reference reads them: the exact per-tap code sums.
+pub(crate) trait CodeSums {
+    /// `sum_c code[row, c] q_w[tap, c, o]` for the `width` output channels from `block`
+    /// (`row_tap`: the input pixel and the kernel tap).
+    fn code_sums(
+        &self,
+        shape: &ConvShape,
+        weight: &[i8],
+        row_tap: (usize, usize),
+        block: usize,
+        width: usize,
+    ) -> [i32; INT8_BLOCK];
+
+    fn row_scale(&self, row: usize) -> f32;
+}
+
+impl CodeSums for DigitRows<'_> {
+    fn code_sums(
+        &self,
+        shape: &ConvShape,
+        weight: &[i8],
+        (row, tap): (usize, usize),
+        block: usize,
+        width: usize,
+    ) -> [i32; INT8_BLOCK] {
+        let high = digit_sums(shape, &self.high, weight, (row, tap), block, width);
+        let mut sums = digit_sums(shape, &self.low, weight, (row, tap), block, width);
+        for (sum, &high) in sums.iter_mut().zip(&high) {
+            // `128 high + low` is the exact code sum (it fits i32, [`MAX_DIGIT_CHANNELS`]);
+            // the high part alone may not, so the arithmetic wraps, which is exact modulo
+            // 2^32 and therefore exact for the result.
+            *sum = high.wrapping_mul(DIGIT_BASE).wrapping_add(*sum);
+        }
+        sums
+    }
+
+    fn row_scale(&self, row: usize) -> f32 {
+        self.scales()[row]
+    }
+}
+
+impl CodeSums for CodeRows<'_> {
+    fn code_sums(
+        &self,
+        shape: &ConvShape,
+        weight: &[i8],
+        (row, tap): (usize, usize),
+        block: usize,
+        width: usize,
+    ) -> [i32; INT8_BLOCK] {
+        let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+        let row_stride = int8_quads(in_channels) * QUAD;
+        let codes = &self.codes[row * row_stride..][..row_stride];
+        let mut sums = [0i32; INT8_BLOCK];
+        for (quad, codes) in codes.chunks_exact(QUAD).enumerate() {
+            let first = int8_quad_index(in_channels, out_channels, tap, quad * QUAD, block);
+            let weights = &weight[first..][..width * QUAD];
+            for (sum, weights) in sums.iter_mut().zip(weights.chunks_exact(QUAD)) {
+                // |code| <= 16383 and |q_w| <= 128: each product and the sum of up to
+                // MAX_DIGIT_CHANNELS of them fit i32.
+                *sum += codes
+                    .iter()
+                    .zip(weights)
+                    .map(|(&code, &w)| code as i32 * w as i32)
+                    .sum::<i32>();
+            }
+        }
+        sums
+    }
+
+    fn row_scale(&self, row: usize) -> f32 {
+        self.scales[row]
     }
 }
 
@@ -382,48 +471,26 @@ impl Kernels for Scalar {
         );
     }
 
-    fn conv_weight_int8(
+    fn conv_int8_codes(
         &self,
         shape: &ConvShape,
-        input: &[f32],
+        input: &CodeRows<'_>,
         weight: &[i8],
         weight_scales: &[f32],
         bias: &[f32],
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        let out_width = shape.out_width();
-        let in_channels = shape.in_channels;
-        let out_channels = shape.out_channels;
-        assert_conv_lengths(shape, (input, weight, bias), output.len());
-        assert_eq!(weight_scales.len(), out_channels);
-        for (position, out) in output.chunks_exact_mut(out_channels).enumerate() {
-            let out_y = position / out_width;
-            let out_x = position % out_width;
-            for block in (0..out_channels).step_by(INT8_BLOCK) {
-                let width = (out_channels - block).min(INT8_BLOCK);
-                let mut totals = [0.0f32; INT8_BLOCK];
-                let totals = &mut totals[..width];
-                for (row, tap) in taps_inside(shape, out_y, out_x) {
-                    let pixel = &input[row * in_channels..][..in_channels];
-                    let taps =
-                        &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
-                    for (&value, weights) in pixel.iter().zip(taps.chunks_exact(out_channels)) {
-                        for (total, &w) in totals.iter_mut().zip(&weights[block..block + width]) {
-                            *total += value * w as f32;
-                        }
-                    }
-                }
-                let channels = block..block + width;
-                store_scaled(
-                    &mut out[channels.clone()],
-                    &totals[..width],
-                    (weight_scales, bias),
-                    channels,
-                    accumulate,
-                );
-            }
-        }
+        assert_code_lengths(shape, input, (weight, weight_scales, bias), output.len());
+        conv_int8_pixels(
+            shape,
+            input,
+            (weight, weight_scales, bias),
+            output,
+            accumulate,
+            0..shape.out_height() * shape.out_width(),
+            0..shape.out_channels,
+        );
     }
 
     fn matvec_weight_int8(

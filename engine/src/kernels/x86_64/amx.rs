@@ -37,7 +37,7 @@ use super::avx512::Avx512;
 use super::int8::PixelTile;
 use crate::kernels::ops::Activation;
 use crate::kernels::scalar::assert_int8_lengths;
-use crate::kernels::{Accumulate, ConvShape, DigitRows, Kernels, QUAD, int8_quad_index};
+use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels, QUAD, int8_quad_index};
 
 /// Rows of every tile: pixels of an activation tile, quads of a weight tile, pixels of a
 /// sum tile.
@@ -599,17 +599,17 @@ impl Kernels for Amx {
         }
     }
 
-    fn conv_weight_int8(
+    fn conv_int8_codes(
         &self,
         shape: &ConvShape,
-        input: &[f32],
+        input: &CodeRows<'_>,
         weight: &[i8],
         weight_scales: &[f32],
         bias: &[f32],
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        self.avx512.conv_weight_int8(
+        self.avx512.conv_int8_codes(
             shape,
             input,
             weight,
@@ -640,6 +640,10 @@ impl Kernels for Amx {
         scales: &mut [f32],
     ) -> bool {
         self.avx512.quantize_rows(input, row_len, digits, scales)
+    }
+
+    fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16], scales: &mut [f32]) {
+        self.avx512.quantize_codes(input, row_len, codes, scales)
     }
 
     fn group_norm(

@@ -21,6 +21,18 @@ macro_rules! backend {
                 ops::quantize_rows_split(input, row_len, digits, scales)
             }
 
+            /// [`ops::quantize_rows_codes`] on this backend's vectors.
+            #[target_feature(enable = $features)]
+            pub(crate) fn quantize_codes(
+                input: &[f32],
+                row_len: usize,
+                codes: &mut [i16],
+                scales: &mut [f32],
+            ) {
+                let row_stride = crate::kernels::int8_quads(row_len) * crate::kernels::QUAD;
+                ops::quantize_rows_codes(input, (row_len, row_stride), codes, scales)
+            }
+
             /// [`ops::group_norm`] on this backend's vectors.
             #[target_feature(enable = $features)]
             pub(crate) fn group_norm(

@@ -20,20 +20,37 @@
 //! The unsigned-by-signed byte products need activations in 0..=127, which every trunk input
 //! is (a ReLU output); [`QuantizedRows::nonnegative`] says so, and any other input goes to the
 //! scalar reference.
+//!
+//! The U-Net's inputs have both signs: [`Kernels::conv_int8_codes`] reads whole signed codes
+//! ([`CodeRows`], i16) and multiplies them by the weights widened to i16, two products a
+//! lane (AVX-512 VNNI `vpdpwssd`, AVX2 `vpmaddwd`): the same tiles, the same exact sums.
+//! A quad's four weights of one output channel, widened, fill two lanes, which meet the
+//! same quad's codes broadcast as (c0, c1), (c2, c3); the two lanes of each channel are
+//! added once per tap.
+//!
+//! [`QuantizedRows::nonnegative`]: crate::kernels::QuantizedRows::nonnegative
+//! [`Kernels::conv_int8_codes`]: crate::kernels::Kernels::conv_int8_codes
 
 use core::arch::x86_64::{
-    __m256, __m256i, __m512, __m512i, _mm256_add_epi32, _mm256_add_ps, _mm256_cvtepi32_ps,
-    _mm256_loadu_ps, _mm256_loadu_si256, _mm256_madd_epi16, _mm256_maddubs_epi16, _mm256_mul_ps,
-    _mm256_set1_epi16, _mm256_set1_epi32, _mm256_set1_ps, _mm256_setzero_ps, _mm256_setzero_si256,
-    _mm256_slli_epi32, _mm256_storeu_ps, _mm512_add_epi32, _mm512_add_ps, _mm512_cvtepi32_ps,
-    _mm512_dpbusd_epi32, _mm512_loadu_ps, _mm512_loadu_si512, _mm512_mul_ps, _mm512_set1_epi32,
-    _mm512_set1_ps, _mm512_setzero_ps, _mm512_setzero_si512, _mm512_slli_epi32, _mm512_storeu_ps,
+    __m256, __m256i, __m512, __m512i, _MM_HINT_T0, _mm_loadu_si128, _mm_prefetch, _mm256_add_epi32,
+    _mm256_add_ps, _mm256_cvtepi8_epi16, _mm256_cvtepi32_ps, _mm256_hadd_epi32, _mm256_loadu_ps,
+    _mm256_loadu_si256, _mm256_madd_epi16, _mm256_maddubs_epi16, _mm256_mul_ps,
+    _mm256_permute4x64_epi64, _mm256_set1_epi16, _mm256_set1_epi32, _mm256_set1_epi64x,
+    _mm256_set1_ps, _mm256_setzero_ps, _mm256_setzero_si256, _mm256_slli_epi32, _mm256_storeu_ps,
+    _mm512_add_epi32, _mm512_add_ps, _mm512_cvtepi8_epi16, _mm512_cvtepi32_ps, _mm512_dpbusd_epi32,
+    _mm512_dpwssd_epi32, _mm512_loadu_ps, _mm512_loadu_si512, _mm512_mul_ps,
+    _mm512_permutex2var_epi32, _mm512_set1_epi32, _mm512_set1_epi64, _mm512_set1_ps,
+    _mm512_setr_epi32, _mm512_setzero_ps, _mm512_setzero_si512, _mm512_slli_epi32,
+    _mm512_storeu_ps,
 };
 
 use crate::kernels::scalar::{
-    assert_int8_lengths, assert_int8_pixel_lengths, conv_int8_pixel, conv_int8_pixels,
+    CodeSums, assert_code_lengths, assert_int8_lengths, assert_int8_pixel_lengths, conv_int8_pixel,
+    conv_int8_pixels,
 };
-use crate::kernels::{Accumulate, ConvShape, DigitRows, QUAD, int8_quad_index};
+use crate::kernels::{
+    Accumulate, CodeRows, ConvShape, DigitRows, QUAD, int8_quad_index, int8_quads,
+};
 
 /// An integer dot product over input-channel quads, `WIDTH` output channels a vector, and
 /// the f32 arithmetic around it.
@@ -64,6 +81,21 @@ pub(crate) unsafe trait Int8Lanes {
     /// `128 high + low` per lane, wrapping (exact when the result fits, as the contract's
     /// code sums do).
     unsafe fn combine_digits(high: Self::Integers, low: Self::Integers) -> Self::Integers;
+    /// The quads of `WIDTH / 2` output channels (`2 WIDTH` bytes) widened to i16: lanes
+    /// `2k` and `2k + 1` hold weights (0, 1) and (2, 3) of the `k`-th channel.
+    unsafe fn widen_quads(from: *const i8) -> Self::Integers;
+    /// Four i16 codes (one quad) as lane pairs: (c0, c1), (c2, c3), repeated.
+    unsafe fn broadcast_codes(from: *const i16) -> Self::Integers;
+    /// `sum + codes . weights` per lane: two i16 x i16 products, exact for codes and
+    /// weights in the scheme's range (|product| <= 16383 x 128).
+    unsafe fn dot_code_pairs(
+        sum: Self::Integers,
+        codes: Self::Integers,
+        weights: Self::Integers,
+    ) -> Self::Integers;
+    /// The sums of adjacent lane pairs: those of `first` (channels 0 .. WIDTH/2), then those
+    /// of `second`, in channel order.
+    unsafe fn add_lane_pairs(first: Self::Integers, second: Self::Integers) -> Self::Integers;
     /// `total + (sum as f32) * scale`, a product then a sum (two roundings).
     unsafe fn add_scaled(total: Self::Floats, sum: Self::Integers, scale: f32) -> Self::Floats;
     unsafe fn load(from: *const f32) -> Self::Floats;
@@ -127,6 +159,29 @@ unsafe impl Int8Lanes for PairSumsYmm {
     unsafe fn combine_digits(high: __m256i, low: __m256i) -> __m256i {
         // SAFETY: the caller runs on AVX2 (trait contract).
         unsafe { _mm256_add_epi32(_mm256_slli_epi32::<7>(high), low) }
+    }
+    #[inline(always)]
+    unsafe fn widen_quads(from: *const i8) -> __m256i {
+        // SAFETY: AVX2, and 16 bytes readable (trait contract).
+        unsafe { _mm256_cvtepi8_epi16(_mm_loadu_si128(from.cast())) }
+    }
+    #[inline(always)]
+    unsafe fn broadcast_codes(from: *const i16) -> __m256i {
+        // SAFETY: AVX2, and 8 bytes readable (trait contract).
+        unsafe { _mm256_set1_epi64x(from.cast::<i64>().read_unaligned()) }
+    }
+    #[inline(always)]
+    unsafe fn dot_code_pairs(sum: __m256i, codes: __m256i, weights: __m256i) -> __m256i {
+        // SAFETY: the caller runs on AVX2 (trait contract). `vpmaddwd` saturates only
+        // for two products of -32768 x -32768, which 15-bit codes cannot make.
+        unsafe { _mm256_add_epi32(sum, _mm256_madd_epi16(codes, weights)) }
+    }
+    #[inline(always)]
+    unsafe fn add_lane_pairs(first: __m256i, second: __m256i) -> __m256i {
+        // SAFETY: the caller runs on AVX2 (trait contract). `vphaddd` adds pairs within
+        // each 128-bit half, giving the 64-bit groups (0 1)(4 5)(2 3)(6 7) of channels:
+        // the permute puts them in order.
+        unsafe { _mm256_permute4x64_epi64::<0b11_01_10_00>(_mm256_hadd_epi32(first, second)) }
     }
     #[inline(always)]
     unsafe fn add_scaled(total: __m256, sum: __m256i, scale: f32) -> __m256 {
@@ -194,6 +249,35 @@ unsafe impl Int8Lanes for VnniZmm {
     unsafe fn combine_digits(high: __m512i, low: __m512i) -> __m512i {
         // SAFETY: the caller runs on AVX-512F (trait contract).
         unsafe { _mm512_add_epi32(_mm512_slli_epi32::<7>(high), low) }
+    }
+    #[inline(always)]
+    unsafe fn widen_quads(from: *const i8) -> __m512i {
+        // SAFETY: AVX-512BW, and 32 bytes readable (trait contract).
+        unsafe { _mm512_cvtepi8_epi16(_mm256_loadu_si256(from.cast())) }
+    }
+    #[inline(always)]
+    unsafe fn broadcast_codes(from: *const i16) -> __m512i {
+        // SAFETY: AVX-512F, and 8 bytes readable (trait contract).
+        unsafe { _mm512_set1_epi64(from.cast::<i64>().read_unaligned()) }
+    }
+    #[inline(always)]
+    unsafe fn dot_code_pairs(sum: __m512i, codes: __m512i, weights: __m512i) -> __m512i {
+        // SAFETY: the caller runs on AVX-512 VNNI (trait contract). `vpdpwssd` wraps, and
+        // the sums it makes here fit (`MAX_DIGIT_CHANNELS`).
+        unsafe { _mm512_dpwssd_epi32(sum, codes, weights) }
+    }
+    #[inline(always)]
+    unsafe fn add_lane_pairs(first: __m512i, second: __m512i) -> __m512i {
+        // SAFETY: the caller runs on AVX-512F (trait contract). Index `i` of a two-source
+        // permute reads lane `i % 16` of `first` below 16 and of `second` from 16 on.
+        unsafe {
+            let even = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
+            let odd = _mm512_setr_epi32(1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31);
+            _mm512_add_epi32(
+                _mm512_permutex2var_epi32(first, even, second),
+                _mm512_permutex2var_epi32(first, odd, second),
+            )
+        }
     }
     #[inline(always)]
     unsafe fn add_scaled(total: __m512, sum: __m512i, scale: f32) -> __m512 {
@@ -271,16 +355,16 @@ pub(crate) fn tiles_apply(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
     input.nonnegative() && shape.in_channels.is_multiple_of(QUAD)
 }
 
-/// The exact i32 sums of one kernel tap: `P` pixels (their activation rows) x `V` vectors
-/// of channels, over every input-channel quad. Kept apart from the f32 side so the sums
-/// live in registers for the whole quad loop.
+/// The exact i32 sums of one kernel tap and one digit plane: `P` pixels (their activation
+/// rows) x `V` vectors of channels, over every input-channel quad. Kept apart from the f32
+/// side so the sums live in registers for the whole quad loop.
 ///
 /// # Safety
 /// The CPU supports `L`; each pointer in `activations` starts a row of `4 quads` readable
 /// bytes; `weights` points at quad 0 of the tap's first channel of the block, with `quads`
 /// quads of `out_channels` channels readable from there and `V WIDTH` channels in the block.
 #[inline(always)]
-unsafe fn tap_sums<L: Int8Lanes, const P: usize, const V: usize>(
+unsafe fn digit_sums<L: Int8Lanes, const P: usize, const V: usize>(
     activations: [*const i8; P],
     weights: *const i8,
     quads: usize,
@@ -307,16 +391,117 @@ unsafe fn tap_sums<L: Int8Lanes, const P: usize, const V: usize>(
     sums
 }
 
+/// Quantized activations as the SIMD tiles read them: the exact code sums of one kernel tap
+/// for a tile, and (through [`CodeSums`]) the reference's reading for what the tiles leave.
+pub(crate) trait TileInput: CodeSums {
+    /// The exact i32 code sums of one tap: `P` pixels (`rows`, the input pixels they read)
+    /// x `V` vectors of channels from the one whose quad 0 of the tap `weights` points at.
+    ///
+    /// # Safety
+    /// The CPU supports `L`; the slices have the lengths `shape` implies; [`tiles_apply`]
+    /// holds for digit planes; the rows are inside the input; the block's `V WIDTH`
+    /// channels are inside the output channels.
+    unsafe fn tap_sums<L: Int8Lanes, const P: usize, const V: usize>(
+        &self,
+        shape: &ConvShape,
+        rows: [usize; P],
+        weights: *const i8,
+    ) -> [[L::Integers; V]; P];
+}
+
+impl TileInput for DigitRows<'_> {
+    /// Each digit plane summed over the same weights, combined into the code sums.
+    #[inline(always)]
+    unsafe fn tap_sums<L: Int8Lanes, const P: usize, const V: usize>(
+        &self,
+        shape: &ConvShape,
+        rows: [usize; P],
+        weights: *const i8,
+    ) -> [[L::Integers; V]; P] {
+        let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+        let quads = in_channels / QUAD;
+        // SAFETY: each row of either plane holds `in_channels` = 4 quads values
+        // (`tiles_apply`); the tap's quads of the block are readable (the caller's promise).
+        let (high, low) = unsafe {
+            let high = rows.map(|row| self.high.values.as_ptr().add(row * in_channels));
+            let low = rows.map(|row| self.low.values.as_ptr().add(row * in_channels));
+            (
+                digit_sums::<L, P, V>(high, weights, quads, out_channels),
+                digit_sums::<L, P, V>(low, weights, quads, out_channels),
+            )
+        };
+        core::array::from_fn(|pixel| {
+            core::array::from_fn(|vector| {
+                // SAFETY: the caller runs on `L`'s CPU.
+                unsafe { L::combine_digits(high[pixel][vector], low[pixel][vector]) }
+            })
+        })
+    }
+}
+
+/// Quad rows of weights [`CodeRows`]' tiles prefetch ahead of the one they read.
+const PREFETCH_QUADS: usize = 16;
+
+impl TileInput for CodeRows<'_> {
+    /// The codes times the widened weights, two lanes a channel, added up per tap.
+    #[inline(always)]
+    unsafe fn tap_sums<L: Int8Lanes, const P: usize, const V: usize>(
+        &self,
+        shape: &ConvShape,
+        rows: [usize; P],
+        weights: *const i8,
+    ) -> [[L::Integers; V]; P] {
+        let out_channels = shape.out_channels;
+        let quads = int8_quads(shape.in_channels);
+        let row_stride = quads * QUAD;
+        // SAFETY: every row holds `quads` whole quads of codes (padded, `CodeRows`) and the
+        // tap's (zero-padded) quads of the block are readable: the caller's promises.
+        unsafe {
+            let codes = rows.map(|row| self.codes.as_ptr().add(row * row_stride));
+            // Per pixel and vector: the halves of its channels (lane pairs).
+            let mut sums = [[(L::zero_integers(), L::zero_integers()); V]; P];
+            for quad in 0..quads {
+                let row = weights.add(quad * out_channels * QUAD);
+                // The U-Net's weights come from L3 once per step, a quad row's `V WIDTH`
+                // channels (one or two cache lines) `4 out_channels` bytes apart: ask for
+                // the lines `PREFETCH_QUADS` rows ahead. A hint only (it never faults),
+                // hence the wrapping address.
+                let ahead = row.wrapping_add(PREFETCH_QUADS * out_channels * QUAD);
+                for line in (0..V * L::WIDTH * QUAD).step_by(64) {
+                    _mm_prefetch::<_MM_HINT_T0>(ahead.wrapping_add(line).cast());
+                }
+                let halves: [(L::Integers, L::Integers); V] = core::array::from_fn(|vector| {
+                    let first = row.add(vector * L::WIDTH * QUAD);
+                    (
+                        L::widen_quads(first),
+                        L::widen_quads(first.add(L::WIDTH * QUAD / 2)),
+                    )
+                });
+                for pixel in 0..P {
+                    let broadcast = L::broadcast_codes(codes[pixel].add(quad * QUAD));
+                    for vector in 0..V {
+                        let (low, high) = &mut sums[pixel][vector];
+                        *low = L::dot_code_pairs(*low, broadcast, halves[vector].0);
+                        *high = L::dot_code_pairs(*high, broadcast, halves[vector].1);
+                    }
+                }
+            }
+            sums.map(|pixel| pixel.map(|(low, high)| L::add_lane_pairs(low, high)))
+        }
+    }
+}
+
 /// The f32 totals of the tile `pixels` x `V WIDTH` channels from `channel`: per tap, the
-/// sums of each digit plane over the same weights, combined into the code sums.
+/// exact code sums, scaled by the row scale of the pixel each one read.
 ///
 /// # Safety
 /// The CPU supports `L`; the slices have the lengths `shape` implies; [`tiles_apply`]
-/// holds; `channel + V WIDTH <= out_channels`; `pixels` is a tile of this output.
+/// holds for digit planes; `channel + V WIDTH <= out_channels`; `pixels` is a tile of this
+/// output.
 #[inline(always)]
-unsafe fn tile<L: Int8Lanes, const P: usize, const V: usize>(
+unsafe fn tile<L: Int8Lanes, I: TileInput, const P: usize, const V: usize>(
     shape: &ConvShape,
-    input: &DigitRows<'_>,
+    input: &I,
     weight: &[i8],
     pixels: &PixelTile<P>,
     channel: usize,
@@ -331,30 +516,24 @@ unsafe fn tile<L: Int8Lanes, const P: usize, const V: usize>(
             let Some(any_row) = rows.iter().flatten().next().copied() else {
                 continue;
             };
-            let row_of = |row: Option<usize>| row.unwrap_or(any_row) * in_channels;
             let tap = kernel_y * shape.kernel_width + kernel_x;
             let weights = &weight[int8_quad_index(in_channels, out_channels, tap, 0, channel)..];
-            let quads = in_channels / QUAD;
-            // SAFETY: each row of either plane holds `in_channels` = 4 quads values
-            // (`tiles_apply`); the tap's quads of the block's `V WIDTH` channels are inside
-            // `weight` (`channel + V WIDTH <= out_channels`).
-            let (high, low) = unsafe {
-                let high = rows.map(|row| input.high.values[row_of(row)..].as_ptr());
-                let low = rows.map(|row| input.low.values[row_of(row)..].as_ptr());
-                (
-                    tap_sums::<L, P, V>(high, weights.as_ptr(), quads, out_channels),
-                    tap_sums::<L, P, V>(low, weights.as_ptr(), quads, out_channels),
+            // SAFETY: the rows are input pixels; the tap's quads of the block's `V WIDTH`
+            // channels are inside `weight` (`channel + V WIDTH <= out_channels`).
+            let sums = unsafe {
+                input.tap_sums::<L, P, V>(
+                    shape,
+                    rows.map(|row| row.unwrap_or(any_row)),
+                    weights.as_ptr(),
                 )
             };
             for pixel in 0..P {
                 let Some(row) = rows[pixel] else { continue };
-                let scale = input.scales()[row];
+                let scale = input.row_scale(row);
                 for vector in 0..V {
                     // SAFETY: the caller runs on `L`'s CPU.
-                    totals[pixel][vector] = unsafe {
-                        let sum = L::combine_digits(high[pixel][vector], low[pixel][vector]);
-                        L::add_scaled(totals[pixel][vector], sum, scale)
-                    };
+                    totals[pixel][vector] =
+                        unsafe { L::add_scaled(totals[pixel][vector], sums[pixel][vector], scale) };
                 }
             }
         }
@@ -401,9 +580,9 @@ unsafe fn store<L: Int8Lanes, const P: usize, const V: usize>(
 /// # Safety
 /// As for [`conv`].
 #[inline(always)]
-unsafe fn channel_blocks<L: Int8Lanes, const P: usize, const V: usize>(
+unsafe fn channel_blocks<L: Int8Lanes, I: TileInput, const P: usize, const V: usize>(
     shape: &ConvShape,
-    input: &DigitRows<'_>,
+    input: &I,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     output: &mut [f32],
     accumulate: Accumulate,
@@ -418,7 +597,7 @@ unsafe fn channel_blocks<L: Int8Lanes, const P: usize, const V: usize>(
             let pixels = PixelTile::<P>::new(shape, first, (positions - first).min(P));
             // SAFETY: the caller's promises; the block and the tile are inside the output.
             unsafe {
-                let totals = tile::<L, P, V>(shape, input, weight, &pixels, *channel);
+                let totals = tile::<L, I, P, V>(shape, input, weight, &pixels, *channel);
                 let out = &mut output[first * out_channels + *channel..];
                 let parameters = (&weight_scales[block.clone()], &bias[block.clone()]);
                 store::<L, P, V>(
@@ -440,12 +619,12 @@ unsafe fn channel_blocks<L: Int8Lanes, const P: usize, const V: usize>(
 ///
 /// # Safety
 /// The CPU supports `L`; the slice lengths are those
-/// [`assert_int8_lengths`](crate::kernels::scalar::assert_int8_lengths) checks;
-/// [`tiles_apply`] holds.
+/// [`assert_int8_lengths`](crate::kernels::scalar::assert_int8_lengths) (or, for codes,
+/// `assert_code_lengths`) checks; [`tiles_apply`] holds for digit planes.
 #[inline(always)]
-pub(crate) unsafe fn conv<L: Int8Lanes, const P: usize, const V: usize>(
+pub(crate) unsafe fn conv<L: Int8Lanes, I: TileInput, const P: usize, const V: usize>(
     shape: &ConvShape,
-    input: &DigitRows<'_>,
+    input: &I,
     parameters: (&[i8], &[f32], &[f32]),
     output: &mut [f32],
     accumulate: Accumulate,
@@ -453,8 +632,8 @@ pub(crate) unsafe fn conv<L: Int8Lanes, const P: usize, const V: usize>(
     let mut channel = 0;
     // SAFETY: this function's contract is theirs.
     unsafe {
-        channel_blocks::<L, P, V>(shape, input, parameters, output, accumulate, &mut channel);
-        channel_blocks::<L, P, 1>(shape, input, parameters, output, accumulate, &mut channel);
+        channel_blocks::<L, I, P, V>(shape, input, parameters, output, accumulate, &mut channel);
+        channel_blocks::<L, I, P, 1>(shape, input, parameters, output, accumulate, &mut channel);
     }
     if channel < shape.out_channels {
         let positions = shape.out_height() * shape.out_width();
@@ -494,11 +673,11 @@ pub(crate) unsafe fn conv_pixel<L: Int8Lanes, const V: usize>(
         // SAFETY: the caller's promises; each block is inside `out_channels`.
         unsafe {
             if channel + V * L::WIDTH <= out_channels {
-                let totals = tile::<L, 1, V>(shape, input, weight, &pixels, channel);
+                let totals = tile::<L, DigitRows<'_>, 1, V>(shape, input, weight, &pixels, channel);
                 store::<L, 1, V>(&totals, 1, parameters, out, 0, overwrite);
                 channel += V * L::WIDTH;
             } else if channel + L::WIDTH <= out_channels {
-                let totals = tile::<L, 1, 1>(shape, input, weight, &pixels, channel);
+                let totals = tile::<L, DigitRows<'_>, 1, 1>(shape, input, weight, &pixels, channel);
                 store::<L, 1, 1>(&totals, 1, parameters, out, 0, overwrite);
                 channel += L::WIDTH;
             } else {
@@ -527,14 +706,41 @@ pub(crate) unsafe fn conv_pixel<L: Int8Lanes, const V: usize>(
 const AVX2_TILE: (usize, usize) = (4, 2);
 const VNNI_TILE: (usize, usize) = (6, 4);
 
+/// The same for signed codes, whose vectors of channels take two sums each: (4, 1) on AVX2
+/// (8 sums), (4, 2) on AVX-512 (16 sums, 4 widened weight halves, 4 broadcasts), the U-Net's
+/// shortest sequence being 4 positions.
+const AVX2_CODES_TILE: (usize, usize) = (4, 1);
+const VNNI_CODES_TILE: (usize, usize) = (4, 2);
+
 /// [`conv`] and [`conv_pixel`] compiled for one backend: the thin `#[target_feature]`
 /// wrappers of the shared body.
 macro_rules! backend {
-    ($module:ident, $lanes:ty, $tile:expr, $features:literal) => {
+    ($module:ident, $lanes:ty, $tile:expr, $codes_tile:expr, $features:literal) => {
         pub(crate) mod $module {
-            use crate::kernels::{Accumulate, ConvShape, DigitRows};
+            use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows};
 
             const TILE: (usize, usize) = $tile;
+            const CODES_TILE: (usize, usize) = $codes_tile;
+
+            /// [`conv`](super::conv) of signed codes on this backend.
+            ///
+            /// # Safety
+            /// The CPU supports the backend's features; otherwise as for the body.
+            #[target_feature(enable = $features)]
+            pub(crate) unsafe fn conv_codes(
+                shape: &ConvShape,
+                input: &CodeRows<'_>,
+                parameters: (&[i8], &[f32], &[f32]),
+                output: &mut [f32],
+                accumulate: Accumulate,
+            ) {
+                // SAFETY: this function's contract is the body's.
+                unsafe {
+                    super::conv::<$lanes, CodeRows<'_>, { CODES_TILE.0 }, { CODES_TILE.1 }>(
+                        shape, input, parameters, output, accumulate,
+                    )
+                }
+            }
 
             /// [`conv`](super::conv) on this backend.
             ///
@@ -550,7 +756,7 @@ macro_rules! backend {
             ) {
                 // SAFETY: this function's contract is the body's.
                 unsafe {
-                    super::conv::<$lanes, { TILE.0 }, { TILE.1 }>(
+                    super::conv::<$lanes, DigitRows<'_>, { TILE.0 }, { TILE.1 }>(
                         shape, input, parameters, output, accumulate,
                     )
                 }
@@ -577,17 +783,28 @@ macro_rules! backend {
     };
 }
 
-backend!(avx2, super::PairSumsYmm, super::AVX2_TILE, "avx2,fma");
+backend!(
+    avx2,
+    super::PairSumsYmm,
+    super::AVX2_TILE,
+    super::AVX2_CODES_TILE,
+    "avx2,fma"
+);
 backend!(
     avx512,
     super::VnniZmm,
     super::VNNI_TILE,
+    super::VNNI_CODES_TILE,
     "avx512f,avx512bw,avx512vl,avx512vnni"
 );
 
 /// A backend's [`conv`] wrapper.
 pub(crate) type ConvKernel =
     unsafe fn(&ConvShape, &DigitRows<'_>, (&[i8], &[f32], &[f32]), &mut [f32], Accumulate);
+
+/// A backend's [`conv`] wrapper for signed codes.
+pub(crate) type CodesKernel =
+    unsafe fn(&ConvShape, &CodeRows<'_>, (&[i8], &[f32], &[f32]), &mut [f32], Accumulate);
 
 /// A backend's [`conv_pixel`] wrapper.
 pub(crate) type PixelKernel =
@@ -657,4 +874,22 @@ pub(crate) unsafe fn checked_conv_pixel(
     // SAFETY: the caller vouches for the CPU; the lengths and the pixel were asserted and
     // `tiles_apply` checked just above.
     unsafe { kernel(shape, input, parameters, (out_y, out_x), output) }
+}
+
+/// [`Kernels::conv_int8_codes`](crate::kernels::Kernels::conv_int8_codes) on `kernel`, the
+/// lengths checked (every input of whole codes suits the tiles).
+///
+/// # Safety
+/// The CPU supports what `kernel` requires.
+pub(crate) unsafe fn checked_conv_codes(
+    kernel: CodesKernel,
+    shape: &ConvShape,
+    input: &CodeRows<'_>,
+    parameters: (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    assert_code_lengths(shape, input, parameters, output.len());
+    // SAFETY: the caller vouches for the CPU; the lengths were asserted just above.
+    unsafe { kernel(shape, input, parameters, output, accumulate) }
 }

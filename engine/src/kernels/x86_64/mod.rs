@@ -1,8 +1,8 @@
 //! x86-64 kernels, chosen at run time from what the CPU reports (CPUID works without std).
 
 /// The [`Kernels`](crate::kernels::Kernels) methods both x86-64 backends implement alike,
-/// each on its own compiled bodies: the U-Net kernels of `sequence::$backend`, the int8
-/// convolution of `int8::$backend`, the element-wise operations of `elementwise::$backend`.
+/// each on its own compiled bodies: the U-Net's f32 kernels of `sequence::$backend`, the
+/// int8 convolutions of `int8::$backend`, the element-wise operations of `elementwise::$backend`.
 /// Expanded only inside the `impl Kernels` of a backend type that exists once CPUID has
 /// reported the features those bodies are compiled for (its `detect`), which is what every
 /// `unsafe` call below relies on.
@@ -60,10 +60,10 @@ macro_rules! shared_kernels {
             unsafe { int8::checked_conv_pixel(kernel, shape, input, parameters, pixel, output) }
         }
 
-        fn conv_weight_int8(
+        fn conv_int8_codes(
             &self,
             shape: &ConvShape,
-            input: &[f32],
+            input: &CodeRows<'_>,
             weight: &[i8],
             weight_scales: &[f32],
             bias: &[f32],
@@ -71,9 +71,10 @@ macro_rules! shared_kernels {
             accumulate: Accumulate,
         ) {
             let parameters = (weight, weight_scales, bias);
+            let kernel = int8::$backend::conv_codes;
             // SAFETY: `self` exists only on a CPU with the backend's features.
             unsafe {
-                sequence::$backend::conv_weight_int8(shape, input, parameters, output, accumulate)
+                int8::checked_conv_codes(kernel, shape, input, parameters, output, accumulate)
             }
         }
 
@@ -98,6 +99,17 @@ macro_rules! shared_kernels {
         ) -> bool {
             // SAFETY: `self` exists only on a CPU with the backend's features.
             unsafe { elementwise::$backend::quantize_rows(input, row_len, digits, scales) }
+        }
+
+        fn quantize_codes(
+            &self,
+            input: &[f32],
+            row_len: usize,
+            codes: &mut [i16],
+            scales: &mut [f32],
+        ) {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { elementwise::$backend::quantize_codes(input, row_len, codes, scales) }
         }
 
         fn group_norm(

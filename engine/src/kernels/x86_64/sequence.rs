@@ -1,16 +1,14 @@
-//! Kernels for the conditional U-Net, over a vector width ([`Lanes`]: YMM for AVX2, ZMM for
-//! AVX-512; one generic body, instantiated in the thin `#[target_feature]` wrappers at the
-//! end): 1-D convolutions over short sequences (`[T, C]`, T = 16, 8 or 4), its transposed
-//! upsampling convolution, and the FiLM matrix-vector products. Their ~15.6 M weights are
-//! read at every denoising step, so these kernels read each weight once per call where they
-//! can:
-//! - int8 weights (15.6 MB, which the L3 cache can hold): a register tile of 4 positions x 2
-//!   vectors of channels; each weight row of the tile is widened once (`vpmovsxbd` +
-//!   `vcvtdq2ps`) and fed to all four positions, the per-channel scale applied once at the
-//!   end;
-//! - f32 weights (62 MB, from DRAM at every step): on sequences of up to 8 positions, each
-//!   weight row is streamed in memory order and applied to every position; longer sequences
-//!   use the register tile.
+//! Kernels for the conditional U-Net's f32 weights, over a vector width ([`Lanes`]: YMM for
+//! AVX2, ZMM for AVX-512; one generic body, instantiated in the thin `#[target_feature]`
+//! wrappers at the end): 1-D convolutions over short sequences (`[T, C]`, T = 16, 8 or 4),
+//! its transposed upsampling convolution, and the FiLM matrix-vector products (whose weights
+//! may also be int8, widened on load). Their weights are read at every denoising step, so
+//! these kernels read each weight once per call where they can:
+//! - on sequences of up to 8 positions, each weight row is streamed in memory order and
+//!   applied to every position (62 MB of f32 weights come from DRAM at every step);
+//! - longer sequences use a register tile of 4 positions x 2 vectors of channels.
+//!
+//! The int8 convolutions of the U-Net take int8 activations: `sequence_int8`.
 
 use core::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
 
@@ -197,7 +195,7 @@ impl Sequence {
 /// Per-channel factors applied to the sums before the bias: the int8 weight scales.
 pub(crate) type Scales<'a> = Option<&'a [f32]>;
 
-/// Runs `sequence`: `output[row, o] (+)= sum * scales[o] + bias[o]`.
+/// Runs `sequence` on register tiles: `output[row, o] (+)= sum + bias[o]`.
 ///
 /// # Safety
 /// The CPU supports `L`.
@@ -205,25 +203,21 @@ pub(crate) type Scales<'a> = Option<&'a [f32]>;
 /// # Panics
 /// If a slice is shorter than `sequence` needs (the model code never passes such slices).
 #[inline(always)]
-unsafe fn convolve<L: Lanes, W: WeightLane>(
+unsafe fn convolve<L: Lanes>(
     sequence: &Sequence,
     input: &[f32],
-    weight: &[W],
-    scales: Scales<'_>,
+    weight: &[f32],
     bias: &[f32],
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
     let out_channels = sequence.out_channels;
     sequence.assert_lengths(input.len(), weight.len(), output.len(), bias.len());
-    if let Some(scales) = scales {
-        assert_eq!(scales.len(), out_channels);
-    }
     if out_channels == 0 {
         return;
     }
     let vector_channels = out_channels - out_channels % L::WIDTH;
-    // The output holds the running sums: bias first, then one scaled partial sum per chunk.
+    // The output holds the running sums: bias first, then one partial sum per chunk.
     for position in 0..sequence.positions {
         let row = sequence.out_first + position * sequence.out_step;
         let out = &mut output[row * out_channels..][..vector_channels];
@@ -241,8 +235,8 @@ unsafe fn convolve<L: Lanes, W: WeightLane>(
             // SAFETY: the caller runs on `L`'s CPU; the asserts above bound every row the
             // tile reads or writes; `channel + 2 WIDTH <= out_channels`.
             unsafe {
-                let sums = tile::<L, W, 2>(sequence, input, weight, first, channel);
-                add_scaled::<L, 2>(sequence, &sums, first, channel, scales, output);
+                let sums = tile::<L, 2>(sequence, input, weight, first, channel);
+                add_sums::<L, 2>(sequence, &sums, first, channel, output);
             }
         }
         channel += 2 * L::WIDTH;
@@ -251,17 +245,15 @@ unsafe fn convolve<L: Lanes, W: WeightLane>(
         for first in (0..sequence.positions).step_by(POSITIONS) {
             // SAFETY: as above, with `channel + WIDTH == vector_channels <= out_channels`.
             unsafe {
-                let sums = tile::<L, W, 1>(sequence, input, weight, first, channel);
-                add_scaled::<L, 1>(sequence, &sums, first, channel, scales, output);
+                let sums = tile::<L, 1>(sequence, input, weight, first, channel);
+                add_sums::<L, 1>(sequence, &sums, first, channel, output);
             }
         }
     }
     if vector_channels < out_channels {
         narrow_channels(
             sequence,
-            input,
-            weight,
-            (scales, bias),
+            (input, weight, bias),
             output,
             accumulate,
             vector_channels,
@@ -294,7 +286,7 @@ unsafe fn convolve_f32<L: Lanes>(
         if sequence.positions <= STREAMING_POSITIONS {
             convolve_streaming::<L>(sequence, input, weight, bias, output, accumulate)
         } else {
-            convolve::<L, f32>(sequence, input, weight, None, bias, output, accumulate)
+            convolve::<L>(sequence, input, weight, bias, output, accumulate)
         }
     }
 }
@@ -384,10 +376,10 @@ unsafe fn add_multiple<L: Lanes>(out: &mut [f32], x: f32, weights: &[f32]) {
 /// The CPU supports `L`; the slices have the lengths [`convolve`] asserts;
 /// `channel + VECS WIDTH <= out_channels`.
 #[inline(always)]
-unsafe fn tile<L: Lanes, W: WeightLane, const VECS: usize>(
+unsafe fn tile<L: Lanes, const VECS: usize>(
     sequence: &Sequence,
     input: &[f32],
-    weight: &[W],
+    weight: &[f32],
     first: usize,
     channel: usize,
 ) -> [[L::Vector; VECS]; POSITIONS] {
@@ -420,7 +412,7 @@ unsafe fn tile<L: Lanes, W: WeightLane, const VECS: usize>(
                     $(
                         // SAFETY: see above; the range was computed by `inside`.
                         ($start, $end) => unsafe {
-                            accumulate::<L, W, VECS, $start, $end>(
+                            accumulate::<L, VECS, $start, $end>(
                                 &mut sums, rows, weights, out_channels, in_channels,
                             )
                         },
@@ -456,16 +448,10 @@ const PREFETCH_ROWS: usize = 16;
 /// positions `rows.1` floats apart, each with `in_channels` readable values; `weights`
 /// points at `in_channels` rows, `weight_step` apart, of `VECS WIDTH` readable weights.
 #[inline(always)]
-unsafe fn accumulate<
-    L: Lanes,
-    W: WeightLane,
-    const VECS: usize,
-    const START: usize,
-    const END: usize,
->(
+unsafe fn accumulate<L: Lanes, const VECS: usize, const START: usize, const END: usize>(
     sums: &mut [[L::Vector; VECS]; POSITIONS],
     (rows, input_step): (*const f32, usize),
-    weights: *const W,
+    weights: *const f32,
     weight_step: usize,
     in_channels: usize,
 ) {
@@ -481,7 +467,7 @@ unsafe fn accumulate<
         // SAFETY (this block): row `c` of the weights holds `VECS WIDTH` readable values, the
         // input row of each position `in_channels`; the caller runs on `L`'s CPU.
         let lanes: [L::Vector; VECS] = core::array::from_fn(|vec| unsafe {
-            W::load::<L>(weights.add(c * weight_step + L::WIDTH * vec))
+            L::load(weights.add(c * weight_step + L::WIDTH * vec))
         });
         for position in START..END {
             let x = unsafe { L::splat(*rows.add((position - START) * input_step + c)) };
@@ -492,18 +478,17 @@ unsafe fn accumulate<
     }
 }
 
-/// `output += sums * scales` for a tile.
+/// `output += sums` for a tile.
 ///
 /// # Safety
 /// The CPU supports `L`; `output` holds the sequence's rows; `channel + VECS WIDTH <=
-/// out_channels`; `scales` has `out_channels` values.
+/// out_channels`.
 #[inline(always)]
-unsafe fn add_scaled<L: Lanes, const VECS: usize>(
+unsafe fn add_sums<L: Lanes, const VECS: usize>(
     sequence: &Sequence,
     sums: &[[L::Vector; VECS]; POSITIONS],
     first: usize,
     channel: usize,
-    scales: Scales<'_>,
     output: &mut [f32],
 ) {
     let count = (sequence.positions - first).min(POSITIONS);
@@ -511,29 +496,19 @@ unsafe fn add_scaled<L: Lanes, const VECS: usize>(
         let row = sequence.out_first + (first + position) * sequence.out_step;
         let out = &mut output[row * sequence.out_channels + channel..][..L::WIDTH * VECS];
         for (vec, &value) in sum.iter().enumerate() {
-            // SAFETY: `channel + WIDTH (vec + 1) <= out_channels`, the length of `scales`;
-            // `out` holds `VECS WIDTH` floats; the caller runs on `L`'s CPU.
+            // SAFETY: `out` holds `VECS WIDTH` floats; the caller runs on `L`'s CPU.
             unsafe {
                 let target = out.as_mut_ptr().add(L::WIDTH * vec);
-                let value = match scales {
-                    Some(scales) => {
-                        let scale = L::load(scales.as_ptr().add(channel + L::WIDTH * vec));
-                        L::fma(value, scale, L::load(target))
-                    }
-                    None => L::add(value, L::load(target)),
-                };
-                L::store(target, value);
+                L::store(target, L::add(value, L::load(target)));
             }
         }
     }
 }
 
 /// The last `out_channels - channel < 8` channels, one at a time (the narrow noise head).
-fn narrow_channels<W: WeightLane>(
+fn narrow_channels(
     sequence: &Sequence,
-    input: &[f32],
-    weight: &[W],
-    (scales, bias): (Scales<'_>, &[f32]),
+    (input, weight, bias): (&[f32], &[f32], &[f32]),
     output: &mut [f32],
     accumulate: Accumulate,
     channel: usize,
@@ -554,10 +529,10 @@ fn narrow_channels<W: WeightLane>(
                 let taps =
                     &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
                 for (&x, weights) in values.iter().zip(taps.chunks_exact(out_channels)) {
-                    sum += x * weights[o].to_f32();
+                    sum += x * weights[o];
                 }
             }
-            let value = sum * scales.map_or(1.0, |scales| scales[o]) + bias[o];
+            let value = sum + bias[o];
             let out = &mut output[row * out_channels + o];
             match accumulate {
                 Accumulate::Overwrite => *out = value,
@@ -638,30 +613,8 @@ macro_rules! backend {
     ($module:ident, $lanes:ty, $features:literal) => {
         pub(crate) mod $module {
             use super::{Scales, Sequence, WeightLane};
-            use crate::kernels::scalar::{Scalar, assert_conv_lengths};
-            use crate::kernels::{Accumulate, ConvShape, Kernels};
-
-            /// [`convolve`](super::convolve) on this backend's vectors.
-            ///
-            /// # Safety
-            /// The CPU supports the backend's features.
-            #[target_feature(enable = $features)]
-            unsafe fn convolve<W: WeightLane>(
-                sequence: &Sequence,
-                input: &[f32],
-                weight: &[W],
-                scales: Scales<'_>,
-                bias: &[f32],
-                output: &mut [f32],
-                accumulate: Accumulate,
-            ) {
-                // SAFETY: this function's contract is the body's.
-                unsafe {
-                    super::convolve::<$lanes, W>(
-                        sequence, input, weight, scales, bias, output, accumulate,
-                    )
-                }
-            }
+            use crate::kernels::scalar::assert_conv_lengths;
+            use crate::kernels::{Accumulate, ConvShape};
 
             /// [`convolve_f32`](super::convolve_f32) on this backend's vectors.
             ///
@@ -736,36 +689,6 @@ macro_rules! backend {
                     // SAFETY: the caller vouches for the CPU.
                     unsafe { convolve_f32(&half, input, weight, bias, output, overwrite) };
                 }
-            }
-
-            /// `Kernels::conv_weight_int8`: the sequence kernel for 1-D shapes (the U-Net's),
-            /// the scalar reference otherwise.
-            ///
-            /// # Safety
-            /// The CPU supports the backend's features.
-            pub(crate) unsafe fn conv_weight_int8(
-                shape: &ConvShape,
-                input: &[f32],
-                (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
-                output: &mut [f32],
-                accumulate: Accumulate,
-            ) {
-                assert_conv_lengths(shape, (input, weight, bias), output.len());
-                assert_eq!(weight_scales.len(), shape.out_channels);
-                let Some(sequence) = Sequence::from_shape(shape) else {
-                    return Scalar.conv_weight_int8(
-                        shape,
-                        input,
-                        weight,
-                        weight_scales,
-                        bias,
-                        output,
-                        accumulate,
-                    );
-                };
-                let scales = Some(weight_scales);
-                // SAFETY: the caller vouches for the CPU.
-                unsafe { convolve(&sequence, input, weight, scales, bias, output, accumulate) }
             }
         }
     };
