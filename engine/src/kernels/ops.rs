@@ -88,17 +88,19 @@ pub fn group_norm(
     beta: &[f32],
     activation: Activation,
 ) {
-    // Groups are processed a batch at a time, each pass walking the data in memory order.
-    const GROUPS: usize = 64;
+    // Groups are processed a chunk at a time (whole groups, at most `CHANNELS` channels, or
+    // one group, a block of `CHANNELS` at a time, if it is wider), each pass walking the
+    // data in memory order.
     let group_size = channels / groups;
     let count = ((data.len() / channels) * group_size) as f64;
-    for first_group in (0..groups).step_by(GROUPS) {
-        let batch = (groups - first_group).min(GROUPS);
+    let groups_per_chunk = (CHANNELS / group_size).max(1);
+    for first_group in (0..groups).step_by(groups_per_chunk) {
+        let chunk_groups = (groups - first_group).min(groups_per_chunk);
         let first = first_group * group_size;
-        let width = batch * group_size;
+        let width = chunk_groups * group_size;
         let span = first..first + width;
-        let mut mean = [0.0f64; GROUPS];
-        let no_centres = [0.0f64; GROUPS];
+        let mut mean = [0.0f64; CHANNELS];
+        let no_centres = [0.0f64; CHANNELS];
         sum_per_group(
             data,
             channels,
@@ -108,10 +110,10 @@ pub fn group_norm(
             |x, _| x,
             &mut mean,
         );
-        // Only the batch's groups: 64 divisions and square roots for the U-Net's 8 groups were
-        // a sixth of the denoising loop.
-        mean[..batch].iter_mut().for_each(|sum| *sum /= count);
-        let mut inverse_std = [0.0f64; GROUPS];
+        mean[..chunk_groups]
+            .iter_mut()
+            .for_each(|sum| *sum /= count);
+        let mut inverse_std = [0.0f64; CHANNELS];
         let square = |x: f64, mean: f64| (x - mean) * (x - mean);
         sum_per_group(
             data,
@@ -122,21 +124,27 @@ pub fn group_norm(
             square,
             &mut inverse_std,
         );
-        inverse_std[..batch]
+        inverse_std[..chunk_groups]
             .iter_mut()
             .for_each(|squares| *squares = 1.0 / libm::sqrt(*squares / count + NORM_EPSILON));
-        const CHANNELS: usize = 256;
         let mut scale = [0.0f32; CHANNELS];
         let mut shift = [0.0f32; CHANNELS];
         for start in (0..width).step_by(CHANNELS) {
             let len = (width - start).min(CHANNELS);
-            for offset in 0..len {
-                let channel = first + start + offset;
-                let group = (start + offset) / group_size;
+            let channels_of = first + start..first + start + len;
+            let per_group = scale[..len]
+                .chunks_mut(group_size)
+                .zip(shift[..len].chunks_mut(group_size))
+                .zip(gamma[channels_of.clone()].chunks(group_size))
+                .zip(beta[channels_of].chunks(group_size));
+            for (group, (((scale, shift), gamma), beta)) in (start / group_size..).zip(per_group) {
                 let (mean, inverse_std) = (mean[group], inverse_std[group]);
-                scale[offset] = (gamma[channel] as f64 * inverse_std) as f32;
-                shift[offset] =
-                    (beta[channel] as f64 - mean * gamma[channel] as f64 * inverse_std) as f32;
+                for (((scale, shift), &gamma), &beta) in
+                    scale.iter_mut().zip(shift.iter_mut()).zip(gamma).zip(beta)
+                {
+                    *scale = (gamma as f64 * inverse_std) as f32;
+                    *shift = (beta as f64 - mean * gamma as f64 * inverse_std) as f32;
+                }
             }
             for pixel in data.chunks_exact_mut(channels) {
                 let values = &mut pixel[first + start..first + start + len];
@@ -148,12 +156,19 @@ pub fn group_norm(
     }
 }
 
+/// Channels (and at most as many groups) [`group_norm`] handles at once: its per-channel
+/// buffers live on the stack.
+const CHANNELS: usize = 256;
+
 /// Adds to `sums[g]`, for each group `g` of the channels `span` (`group_size` channels
 /// each, `centres[g]` its centre), the sum of `term(x, centre)` over the group's values.
-/// Sums are kept per channel, one f64 lane each, adding the pixels in memory order, and only
-/// then folded into their groups in channel order: the per-pixel loop is element-wise and
-/// vectorizes. (Summing each group's channels inside every pixel was a dependent chain;
-/// with it, GroupNorm cost as much as the VNNI convolutions of the int8 trunk.)
+/// `span` is whole groups of at most [`CHANNELS`] channels, or one group. Sums are kept per
+/// channel, one f64 lane each, adding the pixels in memory order, and only then folded into
+/// their groups in channel order: the per-pixel loop is element-wise and vectorizes.
+/// (Summing each group's channels inside every pixel was a dependent chain; with it,
+/// GroupNorm cost as much as the VNNI convolutions of the int8 trunk.) The groups are
+/// walked a chunk of `group_size` channels at a time: a division per channel to find its
+/// group was most of the U-Net's GroupNorm, whose maps have 4 to 16 positions.
 #[inline(always)]
 fn sum_per_group(
     data: &[f32],
@@ -164,14 +179,18 @@ fn sum_per_group(
     term: impl Fn(f64, f64) -> f64,
     sums: &mut [f64],
 ) {
-    const CHANNELS: usize = 256;
     let mut channel_sums = [0.0f64; CHANNELS];
     let mut channel_centres = [0.0f64; CHANNELS];
     for start in span.clone().step_by(CHANNELS) {
         let len = (span.end - start).min(CHANNELS);
-        let group_of = |offset: usize| (start + offset - span.start) / group_size;
-        for (offset, centre) in channel_centres[..len].iter_mut().enumerate() {
-            *centre = centres[group_of(offset)];
+        // The block's first group: whole groups start at the span's start; a block of one
+        // wide group lies inside group 0 of the span.
+        let first_group = (start - span.start) / group_size;
+        for (chunk, &centre) in channel_centres[..len]
+            .chunks_mut(group_size)
+            .zip(&centres[first_group..])
+        {
+            chunk.fill(centre);
         }
         let channel_sums = &mut channel_sums[..len];
         channel_sums.fill(0.0);
@@ -181,8 +200,11 @@ fn sum_per_group(
                 *sum += term(x as f64, centre);
             }
         }
-        for (offset, &sum) in channel_sums.iter().enumerate() {
-            sums[group_of(offset)] += sum;
+        for (chunk, sum) in channel_sums
+            .chunks(group_size)
+            .zip(&mut sums[first_group..])
+        {
+            chunk.iter().for_each(|&channel_sum| *sum += channel_sum);
         }
     }
 }
