@@ -11,8 +11,8 @@
 //! call [`scalar::Scalar`]), a [`Backend`] variant, a branch in [`select`] behind its own
 //! feature detection, and its name in `backends()` of the kernel tests and in
 //! `SCDP_REQUIRE_BACKENDS`, so the shared test suite runs it against the reference. The int8
-//! weight layout already suits SDOT: 2-D convolution weights are stored in input-channel
-//! quads (`[kh, kw, in/4, out, 4]`, docs/FORMAT.md), the four bytes one `sdot` lane reads.
+//! weight layout already suits SDOT: convolution weights are stored in input-channel quads
+//! (`[kh, kw, in/4, out, 4]`, docs/FORMAT.md), the four bytes one `sdot` lane reads.
 
 pub mod ops;
 pub mod scalar;

@@ -270,14 +270,7 @@ pub fn quantize_symmetric(input: &[f32], output: &mut [i8]) -> f32 {
 /// in the quantizing loop itself: no second pass over the output).
 #[inline(always)]
 pub fn quantize_symmetric_signs(input: &[f32], output: &mut [i8]) -> (f32, bool) {
-    // |x| as bits: for numbers the integer order is the float order, and NaN patterns sort
-    // above infinity, so one integer maximum finds max |x| or reports a non-finite input.
-    // It vectorizes; a float fold that must notice NaN does not (it was a fifth of the int8
-    // trunk's time).
-    let largest_bits = input
-        .iter()
-        .fold(0u32, |largest, &x| largest.max(x.to_bits() & 0x7fff_ffff));
-    let largest = f32::from_bits(largest_bits);
+    let largest = largest_magnitude(input);
     if !largest.is_finite() {
         output.fill(0);
         return (f32::NAN, true);
@@ -295,6 +288,19 @@ pub fn quantize_symmetric_signs(input: &[f32], output: &mut [i8]) -> (f32, bool)
         lowest = lowest.min(*q);
     }
     (largest / 127.0, lowest >= 0)
+}
+
+/// `max |x|` over `input`, or a value that is not finite when the input holds NaN or an
+/// infinity. |x| as bits: for numbers the integer order is the float order, and NaN patterns
+/// sort above infinity, so one integer maximum finds max |x| or reports a non-finite input.
+/// It vectorizes; a float fold that must notice NaN does not (it was a fifth of the int8
+/// trunk's time).
+#[inline(always)]
+fn largest_magnitude(input: &[f32]) -> f32 {
+    let bits = input
+        .iter()
+        .fold(0u32, |largest, &x| largest.max(x.to_bits() & 0x7fff_ffff));
+    f32::from_bits(bits)
 }
 
 /// Largest code of the trunk's activation scheme: 14 bits and a sign, so that a code splits
@@ -315,11 +321,7 @@ pub const DIGIT_BASE: f32 = 128.0;
 /// and whether every code is nonnegative.
 #[inline(always)]
 pub fn quantize_split_signs(input: &[f32], high: &mut [i8], low: &mut [i8]) -> (f32, bool) {
-    // As in `quantize_symmetric_signs`: one integer maximum over |x| as bits.
-    let largest_bits = input
-        .iter()
-        .fold(0u32, |largest, &x| largest.max(x.to_bits() & 0x7fff_ffff));
-    let largest = f32::from_bits(largest_bits);
+    let largest = largest_magnitude(input);
     if !largest.is_finite() || largest == 0.0 {
         high.fill(0);
         low.fill(0);
@@ -345,11 +347,7 @@ pub fn quantize_split_signs(input: &[f32], high: &mut [i8], low: &mut [i8]) -> (
 /// all-zero input, NaN for a non-finite one, with zero codes).
 #[inline(always)]
 pub fn quantize_codes(input: &[f32], codes: &mut [i16]) -> f32 {
-    // As in `quantize_symmetric_signs`: one integer maximum over |x| as bits.
-    let largest_bits = input
-        .iter()
-        .fold(0u32, |largest, &x| largest.max(x.to_bits() & 0x7fff_ffff));
-    let largest = f32::from_bits(largest_bits);
+    let largest = largest_magnitude(input);
     if !largest.is_finite() || largest == 0.0 {
         codes.fill(0);
         return if largest == 0.0 { 1.0 } else { f32::NAN };

@@ -210,6 +210,21 @@ pub(crate) fn conv_int8_pixels(
     }
 }
 
+/// The whole int8 convolution, every output pixel and channel: the reference kernel.
+fn conv_int8_map(
+    shape: &ConvShape,
+    input: &impl CodeSums,
+    parameters: (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    let positions = 0..shape.out_height() * shape.out_width();
+    let channels = 0..shape.out_channels;
+    conv_int8_pixels(
+        shape, input, parameters, output, accumulate, positions, channels,
+    );
+}
+
 /// The int8 convolution at output pixel `(out_y, out_x)`, output `channels` only, into
 /// `out` (the pixel's `out_channels` values), in the order [`Kernels::conv_int8`] prescribes.
 pub(crate) fn conv_int8_pixel(
@@ -460,15 +475,8 @@ impl Kernels for Scalar {
         accumulate: Accumulate,
     ) {
         assert_int8_lengths(shape, input, (weight, weight_scales, bias), output.len());
-        conv_int8_pixels(
-            shape,
-            input,
-            (weight, weight_scales, bias),
-            output,
-            accumulate,
-            0..shape.out_height() * shape.out_width(),
-            0..shape.out_channels,
-        );
+        let parameters = (weight, weight_scales, bias);
+        conv_int8_map(shape, input, parameters, output, accumulate);
     }
 
     fn conv_int8_codes(
@@ -482,15 +490,8 @@ impl Kernels for Scalar {
         accumulate: Accumulate,
     ) {
         assert_code_lengths(shape, input, (weight, weight_scales, bias), output.len());
-        conv_int8_pixels(
-            shape,
-            input,
-            (weight, weight_scales, bias),
-            output,
-            accumulate,
-            0..shape.out_height() * shape.out_width(),
-            0..shape.out_channels,
-        );
+        let parameters = (weight, weight_scales, bias);
+        conv_int8_map(shape, input, parameters, output, accumulate);
     }
 
     fn matvec_weight_int8(
