@@ -135,6 +135,15 @@ impl<'w> TensorSource<'w> for FileSource<'w> {
         match entry.dtype {
             DType::F32 => Ok(Weight::F32(self.f32_data(index, &entry)?)),
             DType::I8 => {
+                // An int8 convolution sums its codes exactly in i32 only up to
+                // MAX_DIGIT_CHANNELS inputs (the tool stores wider ones in f32).
+                let inputs = match dims {
+                    [_, _, inputs, _] | [_, inputs, _] => *inputs,
+                    _ => 0,
+                };
+                if inputs > crate::kernels::MAX_DIGIT_CHANNELS {
+                    return Err(Error::UnexpectedTensor { index });
+                }
                 let values = bytemuck::cast_slice(self.file.data(&entry));
                 let scales = self.f32_tensor(scale_name, &[channels])?;
                 // A zero, negative or non-finite scale is not a quantization anyone wrote.

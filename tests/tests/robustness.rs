@@ -15,7 +15,7 @@ mod alloc_guard;
 use std::sync::OnceLock;
 
 use alloc_guard::no_alloc;
-use scdp_engine::format::{self, CHECKSUM_RANGE, WeightsFile};
+use scdp_engine::format::{self, CHECKSUM_RANGE, DType, WeightsFile};
 use scdp_engine::{
     ArenaPlan, Backend, Camera, ConfigError, Error, Model, ModelConfig, Noise, Observer, Policy,
 };
@@ -1338,4 +1338,58 @@ fn unavailable_backend_is_backend_unavailable() {
     for backend in [Backend::Auto, Backend::Scalar] {
         assert!(no_alloc(|| Policy::with_backend(&model, arena.as_mut_slice(), backend)).is_ok());
     }
+}
+
+/// The tiny config with a deepest U-Net level of 516 channels: the first block of the up
+/// path reads the concatenation, 1032 channels, past the 1024 inputs up to which the int8
+/// convolutions' exact i32 sums are guaranteed (`kernels::MAX_DIGIT_CHANNELS`).
+const WIDE: ModelConfig = ModelConfig {
+    down_dims: [16, 32, 516],
+    ..ModelConfig::TINY
+};
+
+/// The tool keeps convolutions wider than that in f32 in an int8 file, and the file runs.
+#[test]
+fn int8_convolutions_too_wide_for_exact_sums_are_stored_in_f32_and_run() {
+    let file = synthetic_weights_file_as(&WIDE, 5, Quant::Int8).unwrap();
+    let tensors = tensors_of(file.as_slice());
+    let dtype_of = |name: &str| tensors.iter().find(|t| t.name == name).unwrap().dtype;
+    assert_eq!(dtype_of("unet.up.0.0.conv0.weight"), DType::F32 as u32);
+    assert_eq!(dtype_of("unet.up.0.0.residual.weight"), DType::F32 as u32);
+    assert_eq!(dtype_of("unet.up.0.0.conv1.weight"), DType::I8 as u32);
+    let model = Model::from_bytes(file.as_slice()).unwrap();
+    let mut arena = AlignedBytes::zeroed(ArenaPlan::new(&WIDE).arena_bytes);
+    let mut policy = Policy::new(&model, arena.as_mut_slice()).unwrap();
+    policy.set_camera(good_camera());
+    let pixels = (WIDE.image_height * WIDE.image_width) as usize;
+    let frame: Vec<u8> = (0..3 * pixels).map(|i| (i % 251) as u8).collect();
+    policy
+        .push_observation(&frame, &vec![0.1; WIDE.state_dim as usize])
+        .unwrap();
+    let noise = vec![0.5; (WIDE.horizon * WIDE.action_dim) as usize];
+    let actions = policy.infer(Noise::Given(&noise)).unwrap();
+    assert!(actions.action_pred().iter().all(|a| a.is_finite()));
+}
+
+/// A file that stores such a convolution as int8 anyway (another tool, or an edit) is
+/// refused at load with the tensor's index, instead of reaching a kernel that would panic.
+#[test]
+fn int8_convolution_too_wide_for_exact_sums_is_an_unexpected_tensor() {
+    let file = synthetic_weights_file_as(&WIDE, 5, Quant::Int8).unwrap();
+    let mut tensors = tensors_of(file.as_slice());
+    let name = "unet.up.0.0.conv0.weight";
+    let index = tensors.iter().position(|t| t.name == name).unwrap();
+    let dims = tensors[index].dims.clone();
+    let (taps, inputs, outputs) = (dims[0], dims[1], dims[2]);
+    tensors[index].dtype = DType::I8 as u32;
+    tensors[index].data = vec![1; taps * inputs.div_ceil(4) * 4 * outputs];
+    let scale = Tensor {
+        name: format!("{name}_scale"),
+        dtype: DType::F32 as u32,
+        dims: vec![outputs],
+        data: 1.0f32.to_le_bytes().repeat(outputs),
+    };
+    tensors.insert(index + 1, scale);
+    let edited = rebuild_onto(file.as_slice(), &tensors);
+    assert_eq!(load(&edited), Err(Error::UnexpectedTensor { index }));
 }

@@ -690,7 +690,15 @@ pub fn store_keeping(
         let spec = specs.iter().find(|spec| spec.name == name);
         let int8_channels =
             spec.and_then(|spec| spec.int8_scales.as_ref().map(|(_, channels)| *channels));
-        let keep = keep_f32(&name);
+        // The engine's exact int8 sums reach `MAX_DIGIT_CHANNELS` inputs (the widest
+        // product layer has 768); a wider convolution stays f32.
+        let too_wide = match spec.map(|spec| spec.dims.as_slice()) {
+            Some([_, _, inputs, _] | [_, inputs, _]) => {
+                *inputs > scdp_engine::kernels::MAX_DIGIT_CHANNELS
+            }
+            _ => false,
+        };
+        let keep = keep_f32(&name) || too_wide;
         let tensor = match (quant, int8_channels, spec) {
             (Quant::Int8, Some(channels), Some(spec)) if !keep => {
                 let axis = if name.ends_with(".film.weight") {
