@@ -266,8 +266,9 @@ impl Lengths {
         // Int8 layer inputs, quantized one layer at a time: the trunk's (the image included
         // should the stem be int8) fit one activation buffer as two digit planes, with rows
         // at most the image's pixels; the U-Net's are at most `horizon` rows of an up
-        // block's concatenated input, as i16 codes padded to whole quads.
-        let unet_codes = 2 * horizon * 4 * (2 * widest).div_ceil(4);
+        // block's concatenated input (or the sample, the first block's), as i16 codes
+        // padded to whole quads.
+        let unet_codes = 2 * horizon * 4 * max(2 * widest, action_dim).div_ceil(4);
         let quantized = aligned(max(2 * trunk_activation, unet_codes).div_ceil(4));
         let quantized_scales = aligned(max(pixels, horizon));
         let persistent = features
