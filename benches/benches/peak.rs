@@ -73,15 +73,37 @@ fn throughput(loop_: &Throughput) -> (f64, f64) {
     (median / 1e9, best / 1e9)
 }
 
-fn bandwidth(label: &str, bytes: usize) {
-    let values: Vec<u32> = (0..(bytes / 4) as u32).collect();
+/// Read bandwidth of a `bytes` buffer in plain pages (a `Vec`) or, with `huge_pages`, in
+/// the transparent huge pages the engine's buffers get on Linux (`AlignedBytes`).
+fn bandwidth(label: &str, bytes: usize, huge_pages: bool) {
+    let mut mapped = weights_tool::writer::AlignedBytes::zeroed(if huge_pages { bytes } else { 0 });
+    let mut owned: Vec<u32> = Vec::new();
+    let values: &mut [u32] = if huge_pages {
+        bytemuck::cast_slice_mut(mapped.as_mut_slice())
+    } else {
+        owned.resize(bytes / 4, 0);
+        &mut owned
+    };
+    values
+        .iter_mut()
+        .zip(0u32..)
+        .for_each(|(value, index)| *value = index);
+    let values: &[u32] = values;
+    let label = format!(
+        "{label}, {}",
+        if huge_pages {
+            "2 MiB pages"
+        } else {
+            "4 KiB pages"
+        }
+    );
     let expected = values.iter().fold(0u32, |s, &v| s.wrapping_add(v));
     // Small buffers are read several times per timed call.
     let passes = (256 << 20) / bytes.min(256 << 20);
     for loop_ in bandwidth_loops() {
         let (median, best) = rates((passes * bytes) as f64, || {
             for _ in 0..passes {
-                assert_eq!((loop_.run)(std::hint::black_box(&values)), expected);
+                assert_eq!((loop_.run)(std::hint::black_box(values)), expected);
             }
         });
         println!(
@@ -121,6 +143,8 @@ fn main() {
     }
     println!("\n| buffer | median GB/s | best GB/s |");
     println!("|---|---:|---:|");
-    bandwidth("16 MiB (fits L3)", 16 << 20);
-    bandwidth("256 MiB (> L3)", 256 << 20);
+    for huge_pages in [false, true] {
+        bandwidth("16 MiB (fits L3)", 16 << 20, huge_pages);
+        bandwidth("256 MiB (> L3)", 256 << 20, huge_pages);
+    }
 }
