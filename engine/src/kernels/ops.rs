@@ -99,34 +99,28 @@ pub fn group_norm(
         let first = first_group * group_size;
         let width = chunk_groups * group_size;
         let span = first..first + width;
+        // One pass for both moments, in f64: a square of an f32 is exact in f64, and the sums
+        // of up to a few hundred thousand of them lose ~1e-11 of their value, so the
+        // variance `E[x^2] - E[x]^2` keeps f32 precision unless the mean is ~1e4 standard
+        // deviations from zero (no normalization input is). A second pass over the data for
+        // the centred squares cost a third of GroupNorm's memory traffic.
         let mut mean = [0.0f64; CHANNELS];
-        let no_centres = [0.0f64; CHANNELS];
-        sum_per_group(
-            data,
-            channels,
-            span.clone(),
-            group_size,
-            &no_centres,
-            |x, _| x,
-            &mut mean,
-        );
-        mean[..chunk_groups]
-            .iter_mut()
-            .for_each(|sum| *sum /= count);
         let mut inverse_std = [0.0f64; CHANNELS];
-        let square = |x: f64, mean: f64| (x - mean) * (x - mean);
-        sum_per_group(
+        moments_per_group(
             data,
             channels,
             span,
             group_size,
-            &mean,
-            square,
-            &mut inverse_std,
+            (&mut mean, &mut inverse_std),
         );
-        inverse_std[..chunk_groups]
+        for (mean, squares) in mean[..chunk_groups]
             .iter_mut()
-            .for_each(|squares| *squares = 1.0 / libm::sqrt(*squares / count + NORM_EPSILON));
+            .zip(&mut inverse_std[..chunk_groups])
+        {
+            *mean /= count;
+            let variance = (*squares / count - *mean * *mean).max(0.0);
+            *squares = 1.0 / libm::sqrt(variance + NORM_EPSILON);
+        }
         let mut scale = [0.0f32; CHANNELS];
         let mut shift = [0.0f32; CHANNELS];
         for start in (0..width).step_by(CHANNELS) {
@@ -160,51 +154,61 @@ pub fn group_norm(
 /// buffers live on the stack.
 const CHANNELS: usize = 256;
 
-/// Adds to `sums[g]`, for each group `g` of the channels `span` (`group_size` channels
-/// each, `centres[g]` its centre), the sum of `term(x, centre)` over the group's values.
-/// `span` is whole groups of at most [`CHANNELS`] channels, or one group. Sums are kept per
-/// channel, one f64 lane each, adding the pixels in memory order, and only then folded into
-/// their groups in channel order: the per-pixel loop is element-wise and vectorizes.
+/// Adds to `sums[g]` and `squares[g]`, for each group `g` of the channels `span`
+/// (`group_size` channels each), the sum of the group's values and of their squares, in
+/// f64. `span` is whole groups of at most [`CHANNELS`] channels, or one group. Sums are kept
+/// per channel, one f64 lane each, adding the pixels in memory order, and only then folded
+/// into their groups in channel order: the per-pixel loop is element-wise and vectorizes.
 /// (Summing each group's channels inside every pixel was a dependent chain; with it,
 /// GroupNorm cost as much as the VNNI convolutions of the int8 trunk.) The groups are
 /// walked a chunk of `group_size` channels at a time: a division per channel to find its
 /// group was most of the U-Net's GroupNorm, whose maps have 4 to 16 positions.
 #[inline(always)]
-fn sum_per_group(
+fn moments_per_group(
     data: &[f32],
     channels: usize,
     span: core::ops::Range<usize>,
     group_size: usize,
-    centres: &[f64],
-    term: impl Fn(f64, f64) -> f64,
-    sums: &mut [f64],
+    (sums, squares): (&mut [f64], &mut [f64]),
 ) {
     let mut channel_sums = [0.0f64; CHANNELS];
-    let mut channel_centres = [0.0f64; CHANNELS];
+    let mut channel_squares = [0.0f64; CHANNELS];
     for start in span.clone().step_by(CHANNELS) {
         let len = (span.end - start).min(CHANNELS);
         // The block's first group: whole groups start at the span's start; a block of one
         // wide group lies inside group 0 of the span.
         let first_group = (start - span.start) / group_size;
-        for (chunk, &centre) in channel_centres[..len]
-            .chunks_mut(group_size)
-            .zip(&centres[first_group..])
-        {
-            chunk.fill(centre);
-        }
         let channel_sums = &mut channel_sums[..len];
+        let channel_squares = &mut channel_squares[..len];
         channel_sums.fill(0.0);
+        channel_squares.fill(0.0);
         for pixel in data.chunks_exact(channels) {
             let values = &pixel[start..start + len];
-            for ((sum, &x), &centre) in channel_sums.iter_mut().zip(values).zip(&channel_centres) {
-                *sum += term(x as f64, centre);
+            for ((sum, square), &x) in channel_sums
+                .iter_mut()
+                .zip(channel_squares.iter_mut())
+                .zip(values)
+            {
+                let x = x as f64;
+                *sum += x;
+                *square += x * x;
             }
         }
-        for (chunk, sum) in channel_sums
+        let per_group = channel_sums
             .chunks(group_size)
-            .zip(&mut sums[first_group..])
-        {
-            chunk.iter().for_each(|&channel_sum| *sum += channel_sum);
+            .zip(channel_squares.chunks(group_size))
+            .zip(
+                sums[first_group..]
+                    .iter_mut()
+                    .zip(&mut squares[first_group..]),
+            );
+        for ((channel_sums, channel_squares), (sum, square)) in per_group {
+            channel_sums
+                .iter()
+                .for_each(|&channel_sum| *sum += channel_sum);
+            channel_squares
+                .iter()
+                .for_each(|&channel_square| *square += channel_square);
         }
     }
 }
