@@ -361,17 +361,11 @@ impl<'w> WeightsFile<'w> {
         }
         let offset = usize::try_from(u64_at(row, 80)).map_err(|_| bad)?;
         let byte_len = usize::try_from(u64_at(row, 88)).map_err(|_| bad)?;
-        // An int8 convolution kernel, `[kh, kw, in, out]` or `[k, in, out]`, is stored in
-        // input-channel quads, `in` padded to a multiple of 4 (crate::kernels::int8_quad_index).
-        let padded = |taps: usize, input: usize, output: usize| {
-            taps.checked_mul(crate::kernels::int8_quads(input) * crate::kernels::QUAD)
-                .and_then(|n| n.checked_mul(output))
-                .ok_or(bad)
-        };
-        let stored = match (dtype, rank) {
-            (DType::I8, 4) => padded(dims[0] * dims[1], dims[2], dims[3])?,
-            (DType::I8, 3) => padded(dims[0], dims[1], dims[2])?,
-            _ => elements,
+        // An int8 convolution kernel is stored in input-channel quads, `in` padded to a
+        // multiple of 4 (crate::kernels::int8_quad_index).
+        let stored = match dtype {
+            DType::I8 => crate::kernels::int8_stored_elements(&dims[..rank]).ok_or(bad)?,
+            DType::F32 => elements,
         };
         if stored.checked_mul(dtype.size()) != Some(byte_len) {
             return Err(bad);

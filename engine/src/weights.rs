@@ -137,11 +137,7 @@ impl<'w> TensorSource<'w> for FileSource<'w> {
             DType::I8 => {
                 // An int8 convolution sums its codes exactly in i32 only up to
                 // MAX_DIGIT_CHANNELS inputs (the tool stores wider ones in f32).
-                let inputs = match dims {
-                    [_, _, inputs, _] | [_, inputs, _] => *inputs,
-                    _ => 0,
-                };
-                if inputs > crate::kernels::MAX_DIGIT_CHANNELS {
+                if !crate::kernels::int8_fits(dims) {
                     return Err(Error::UnexpectedTensor { index });
                 }
                 let values = bytemuck::cast_slice(self.file.data(&entry));

@@ -692,12 +692,7 @@ pub fn store_keeping(
             spec.and_then(|spec| spec.int8_scales.as_ref().map(|(_, channels)| *channels));
         // The engine's exact int8 sums reach `MAX_DIGIT_CHANNELS` inputs (the widest
         // product layer has 768); a wider convolution stays f32.
-        let too_wide = match spec.map(|spec| spec.dims.as_slice()) {
-            Some([_, _, inputs, _] | [_, inputs, _]) => {
-                *inputs > scdp_engine::kernels::MAX_DIGIT_CHANNELS
-            }
-            _ => false,
-        };
+        let too_wide = spec.is_some_and(|spec| !scdp_engine::kernels::int8_fits(&spec.dims));
         let keep = keep_f32(&name) || too_wide;
         let tensor = match (quant, int8_channels, spec) {
             (Quant::Int8, Some(channels), Some(spec)) if !keep => {
@@ -716,17 +711,12 @@ pub fn store_keeping(
                 }
                 // Convolutions take int8 activations: their kernels go to the layout of the
                 // integer dot products (docs/FORMAT.md); FiLM matrices stay as they are.
-                let taps_in_out = match spec.dims.as_slice() {
-                    [kh, kw, input, output] => Some((kh * kw, *input, *output)),
-                    [taps, input, output] => Some((*taps, *input, *output)),
-                    _ => None,
-                };
+                let taps_in_out = scdp_engine::kernels::int8_convolution(&spec.dims);
                 match (quantized, taps_in_out) {
-                    (Stored::Int8 { values, scales }, Some((taps, input, output))) => {
-                        let shape = scdp_engine::kernels::ConvShape::sequence(
-                            taps, input, output, taps, 1, 0,
-                        );
-                        let mut packed = vec![0i8; shape.int8_weight_len()];
+                    (Stored::Int8 { values, scales }, Some((_, input, output))) => {
+                        let stored = scdp_engine::kernels::int8_stored_elements(&spec.dims)
+                            .with_context(|| format!("size of `{name}`"))?;
+                        let mut packed = vec![0i8; stored];
                         scdp_engine::kernels::pack_int8_quads(&values, input, output, &mut packed);
                         Stored::Int8 {
                             values: packed,

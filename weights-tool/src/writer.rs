@@ -130,16 +130,8 @@ pub fn write_weights_file(
                     bail!("internal: `{}` cannot be stored as int8", spec.name);
                 };
                 // Convolution kernels are stored in input-channel quads (docs/FORMAT.md).
-                let quads = |taps: usize, input: usize, output: usize| {
-                    taps * scdp_engine::kernels::int8_quads(input)
-                        * scdp_engine::kernels::QUAD
-                        * output
-                };
-                let stored_elements = match spec.dims.as_slice() {
-                    [kh, kw, input, output] => quads(kh * kw, *input, *output),
-                    [taps, input, output] => quads(*taps, *input, *output),
-                    _ => elements,
-                };
+                let stored_elements =
+                    scdp_engine::kernels::int8_stored_elements(&spec.dims).unwrap_or(elements);
                 ensure!(
                     values.len() == stored_elements && scales.len() == *channels,
                     "internal: int8 `{}` does not match {:?}",

@@ -209,6 +209,37 @@ pub const fn int8_quad_index(
     ((tap * int8_quads(in_channels) + input / QUAD) * out_channels + output) * QUAD + input % QUAD
 }
 
+/// An int8 tensor's dims read as a convolution kernel: `[kh, kw, in, out]` (2-D) or
+/// `[k, in, out]` (1-D) give `(taps, in, out)`; any other rank (the FiLM matrices) is not a
+/// convolution. `None` too when `kh kw` overflows (the dims may come from a file).
+pub fn int8_convolution(dims: &[usize]) -> Option<(usize, usize, usize)> {
+    match *dims {
+        [height, width, inputs, outputs] => Some((height.checked_mul(width)?, inputs, outputs)),
+        [taps, inputs, outputs] => Some((taps, inputs, outputs)),
+        _ => None,
+    }
+}
+
+/// Elements an int8 tensor of `dims` stores: a convolution kernel in input-channel quads
+/// (`taps x 4 ceil(in / 4) x out`, [`int8_quad_index`]), anything else as its dims say.
+/// `None` when that overflows.
+pub fn int8_stored_elements(dims: &[usize]) -> Option<usize> {
+    match int8_convolution(dims) {
+        Some((taps, inputs, outputs)) => taps
+            .checked_mul(int8_quads(inputs) * QUAD)?
+            .checked_mul(outputs),
+        None => dims
+            .iter()
+            .try_fold(1usize, |product, &dim| product.checked_mul(dim)),
+    }
+}
+
+/// Whether an int8 tensor of `dims` can be run: a convolution's exact i32 code sums hold up
+/// to [`MAX_DIGIT_CHANNELS`] inputs (wider ones are stored in f32 by the tool).
+pub fn int8_fits(dims: &[usize]) -> bool {
+    int8_convolution(dims).is_none_or(|(_, inputs, _)| inputs <= MAX_DIGIT_CHANNELS)
+}
+
 /// Packs `weight` (`[taps, in, out]`, the f32 layout) into the int8 quad layout `packed`
 /// (`taps * ceil(in / 4) * 4 * out` values; the padding channels are written as 0).
 pub fn pack_int8_quads(weight: &[i8], in_channels: usize, out_channels: usize, packed: &mut [i8]) {
