@@ -411,7 +411,7 @@ pub trait Kernels: Sync {
     /// [`ops::quantize_rows_codes`]: per-row 15-bit symmetric quantization of `input` into
     /// whole codes, rows padded to whole quads ([`CodeRows`]), and `scales`.
     fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16], scales: &mut [f32]) {
-        let row_stride = int8_quads(row_len) * QUAD;
+        let row_stride = CodeRows::row_stride(row_len);
         ops::quantize_rows_codes(input, (row_len, row_stride), codes, scales)
     }
 
@@ -459,6 +459,13 @@ pub const MAX_DIGIT_CHANNELS: usize = 1024;
 pub struct CodeRows<'a> {
     pub codes: &'a [i16],
     pub scales: &'a [f32],
+}
+
+impl CodeRows<'_> {
+    /// Codes a row of `channels` values takes: whole quads.
+    pub const fn row_stride(channels: usize) -> usize {
+        int8_quads(channels) * QUAD
+    }
 }
 
 /// Arena space for quantizing one layer input: its two digit planes (the high digits, then
@@ -532,7 +539,7 @@ impl QuantizeScratch<'_> {
         row_len: usize,
     ) -> CodeRows<'_> {
         let rows = input.len() / row_len;
-        let row_stride = int8_quads(row_len) * QUAD;
+        let row_stride = CodeRows::row_stride(row_len);
         let codes: &mut [i16] = bytemuck::cast_slice_mut(&mut self.values[..2 * rows * row_stride]);
         let scales = &mut self.scales[..rows];
         kernels.quantize_codes(input, row_len, codes, scales);

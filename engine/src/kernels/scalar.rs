@@ -3,7 +3,7 @@
 
 use super::{
     Accumulate, CodeRows, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS, QUAD, QuantizedRows,
-    int8_quad_index, int8_quads, ops,
+    int8_quad_index, ops,
 };
 
 /// Output channels accumulated at once in the int8 kernels (an i32 block on the stack).
@@ -172,7 +172,7 @@ pub(crate) fn assert_code_lengths(
     assert!(shape.in_channels <= MAX_DIGIT_CHANNELS);
     assert_eq!(
         input.codes.len(),
-        rows * int8_quads(shape.in_channels) * QUAD
+        rows * CodeRows::row_stride(shape.in_channels)
     );
     assert_eq!(input.scales.len(), rows);
     assert_eq!(weight.len(), shape.int8_weight_len());
@@ -309,7 +309,7 @@ impl CodeSums for CodeRows<'_> {
         width: usize,
     ) -> [i32; INT8_BLOCK] {
         let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
-        let row_stride = int8_quads(in_channels) * QUAD;
+        let row_stride = CodeRows::row_stride(in_channels);
         let codes = &self.codes[row * row_stride..][..row_stride];
         let mut sums = [0i32; INT8_BLOCK];
         for (quad, codes) in codes.chunks_exact(QUAD).enumerate() {

@@ -29,7 +29,7 @@ macro_rules! backend {
                 codes: &mut [i16],
                 scales: &mut [f32],
             ) {
-                let row_stride = crate::kernels::int8_quads(row_len) * crate::kernels::QUAD;
+                let row_stride = crate::kernels::CodeRows::row_stride(row_len);
                 ops::quantize_rows_codes(input, (row_len, row_stride), codes, scales)
             }
 

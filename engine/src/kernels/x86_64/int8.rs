@@ -48,9 +48,7 @@ use crate::kernels::scalar::{
     CodeSums, assert_code_lengths, assert_int8_lengths, assert_int8_pixel_lengths, conv_int8_pixel,
     conv_int8_pixels,
 };
-use crate::kernels::{
-    Accumulate, CodeRows, ConvShape, DigitRows, QUAD, int8_quad_index, int8_quads,
-};
+use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, QUAD, int8_quad_index};
 
 /// An integer dot product over input-channel quads, `WIDTH` output channels a vector, and
 /// the f32 arithmetic around it.
@@ -452,8 +450,8 @@ impl TileInput for CodeRows<'_> {
         weights: *const i8,
     ) -> [[L::Integers; V]; P] {
         let out_channels = shape.out_channels;
-        let quads = int8_quads(shape.in_channels);
-        let row_stride = quads * QUAD;
+        let row_stride = CodeRows::row_stride(shape.in_channels);
+        let quads = row_stride / QUAD;
         // SAFETY: every row holds `quads` whole quads of codes (padded, `CodeRows`) and the
         // tap's (zero-padded) quads of the block are readable: the caller's promises.
         unsafe {
