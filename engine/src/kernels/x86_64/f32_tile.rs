@@ -53,9 +53,9 @@ unsafe fn tile<L: Lanes, const N: usize>(
             (out_y, out_x) = (out_y + 1, 0);
         }
     }
+    let whole = taps.columns == (0..kernel_width);
     for kernel_y in taps.rows {
         let row_taps = (kernel_y * kernel_width) * in_channels * out_channels + channel;
-        let whole = taps.columns == (0..kernel_width);
         if let Some(row_first) = whole_rows::<N>(shape, &pixels, count, kernel_y).filter(|_| whole)
         {
             let run = (row_taps, kernel_width * in_channels);
@@ -340,10 +340,8 @@ pub(crate) unsafe fn conv_pixel<L: Lanes>(
         // SAFETY: as in `conv`; `output` is the pixel's channels, so pixel 0 is inside it.
         unsafe {
             let position = pixel.0 * shape.out_width() + pixel.1;
-            let taps = Taps {
-                rows: 0..shape.kernel_height,
-                columns: 0..shape.kernel_width,
-            };
+            // The whole kernel in one pass, as `conv` runs it when it does not chunk.
+            let taps = pass_taps(shape, (1, 1), 0);
             let sums = tile::<L, 1>(
                 shape,
                 (input, weight),
