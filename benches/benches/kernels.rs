@@ -69,9 +69,6 @@ fn benches(c: &mut Criterion) {
         let values: Vec<i8> = (0..2 * shape.input_len())
             .map(|_| (rng.next() % 128) as i8)
             .collect();
-        let scales: Vec<f32> = (0..shape.in_height * shape.in_width)
-            .map(|_| 0.01 + (rng.next() % 100) as f32 * 1e-4)
-            .collect();
         let weight: Vec<i8> = (0..shape.weight_len())
             .map(|_| ((rng.next() % 255) as i32 - 127) as i8)
             .collect();
@@ -80,7 +77,7 @@ fn benches(c: &mut Criterion) {
         let weight_scales = vec![1e-3f32; shape.out_channels];
         let bias = vec![0.5f32; shape.out_channels];
         let mut output = vec![0.0f32; shape.output_len()];
-        let input = DigitRows::from_planes(&values, &scales, true);
+        let input = DigitRows::from_planes(&values, 0.01, true);
         on_every_backend(c, format!("conv_int8/{name}"), &shape, |kernels| {
             kernels.conv_int8(
                 &shape,

@@ -49,9 +49,8 @@ pub struct ArenaPlan {
     pub film: usize,
     /// Int8 weights only: a layer's input quantized, a trunk layer's to two digit planes
     /// (twice the bytes of the largest trunk activation, in f32 units), a U-Net layer's to
-    /// i16 codes, and one scale per pixel or position (`kernels::QuantizeScratch`).
+    /// i16 codes (`kernels::QuantizeScratch`).
     pub quantized: usize,
-    pub quantized_scales: usize,
 
     /// Shared scratch: the larger of the two phases below.
     pub scratch: usize,
@@ -90,7 +89,6 @@ impl ArenaPlan {
             activated_cond: saturate(plan.activated_cond),
             film: saturate(plan.film),
             quantized: saturate(plan.quantized),
-            quantized_scales: saturate(plan.quantized_scales),
             scratch: saturate(plan.scratch),
             trunk_activation: saturate(plan.trunk_activation),
             trunk_stem: saturate(plan.trunk_stem),
@@ -111,7 +109,8 @@ impl ArenaPlan {
 ///   computed so far;
 /// - `taps`: for those levels, the projection's input C(level + 1), `[H_n, W_n, C_n]`, in
 ///   f32, or in int8 (bytes, same element offsets) for int8 weights;
-/// - `tap_scales`: for int8 weights, one scale per cell of those taps;
+/// - `tap_scales`: for int8 weights, the scale of each level's quantized tap (one per
+///   level);
 /// - `computed`: one bit per cell of those levels (u32 words), set once the cell is.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct FrameLayout {
@@ -133,7 +132,6 @@ struct FrameLengths {
 impl FrameLengths {
     const fn new(config: &ModelConfig) -> FrameLengths {
         let mut cells = 0;
-        let mut on_demand_cells = 0;
         let mut on_demand_words = 0;
         let mut taps = 0;
         let mut level = 0;
@@ -142,7 +140,6 @@ impl FrameLengths {
             let level_cells = height as u64 * width as u64;
             cells += level_cells;
             if config.projection_on_demand(level) {
-                on_demand_cells += level_cells;
                 on_demand_words += level_cells.div_ceil(32);
                 taps += level_cells * config.pyramid_channels(level) as u64;
             }
@@ -150,7 +147,7 @@ impl FrameLengths {
         }
         let maps = aligned(cells * config.feature_dim as u64);
         let taps = aligned(taps);
-        let tap_scales = aligned(on_demand_cells);
+        let tap_scales = aligned(PYRAMID_LEVELS as u64);
         let computed = aligned(on_demand_words);
         FrameLengths {
             maps,
@@ -195,7 +192,6 @@ struct Lengths {
     activated_cond: u64,
     film: u64,
     quantized: u64,
-    quantized_scales: u64,
     scratch: u64,
     trunk_activation: u64,
     trunk_stem: u64,
@@ -270,7 +266,6 @@ impl Lengths {
         // padded to whole quads.
         let unet_codes = 2 * horizon * 4 * max(2 * widest, action_dim).div_ceil(4);
         let quantized = aligned(max(2 * trunk_activation, unet_codes).div_ceil(4));
-        let quantized_scales = aligned(max(pixels, horizon));
         let persistent = features
             + states
             + anchors
@@ -279,8 +274,7 @@ impl Lengths {
             + global_cond
             + activated_cond
             + film
-            + quantized
-            + quantized_scales;
+            + quantized;
         let scratch = max(trunk, unet);
         Lengths {
             arena_bytes: 4 * (persistent + scratch),
@@ -295,7 +289,6 @@ impl Lengths {
             activated_cond,
             film,
             quantized,
-            quantized_scales,
             scratch,
             trunk_activation,
             trunk_stem,

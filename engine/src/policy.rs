@@ -193,7 +193,6 @@ impl<'w, 'a> Policy<'w, 'a> {
             film: carver.take(plan.film),
             quantized: QuantizeScratch {
                 values: bytemuck::cast_slice_mut(carver.take(plan.quantized)),
-                scales: carver.take(plan.quantized_scales),
             },
             scratch: carver.take(plan.scratch),
         }
@@ -361,7 +360,6 @@ impl<'w, 'a> Policy<'w, 'a> {
                 film: &mut *buffers.film,
                 quantized: QuantizeScratch {
                     values: &mut *buffers.quantized.values,
-                    scales: &mut *buffers.quantized.scales,
                 },
             };
             denoiser::predict_noise(

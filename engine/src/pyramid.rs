@@ -63,7 +63,8 @@ pub struct FrameStore<'a> {
 struct LevelStore<'s> {
     map: &'s mut [f32],
     taps: &'s mut [f32],
-    tap_scales: &'s mut [f32],
+    /// The scale of `taps` when int8 (empty for a dense level).
+    tap_scale: &'s mut [f32],
     computed: &'s mut [u32],
 }
 
@@ -83,7 +84,7 @@ impl<'a> FrameStore<'a> {
     }
 
     fn level(&mut self, config: &ModelConfig, level: usize) -> LevelStore<'_> {
-        let (map_at, tap_at, cell_at, word_at) = level_offsets(config, level);
+        let (map_at, tap_at, word_at) = level_offsets(config, level);
         let feature_dim = config.feature_dim as usize;
         let (height, width) = config.pyramid_size(level);
         let cells = height * width;
@@ -92,14 +93,14 @@ impl<'a> FrameStore<'a> {
             return LevelStore {
                 map,
                 taps: &mut [],
-                tap_scales: &mut [],
+                tap_scale: &mut [],
                 computed: &mut [],
             };
         }
         LevelStore {
             map,
             taps: &mut self.taps[tap_at..][..cells * config.pyramid_channels(level)],
-            tap_scales: &mut self.tap_scales[cell_at..][..cells],
+            tap_scale: &mut self.tap_scales[level..][..1],
             computed: &mut self.computed[word_at..][..cells.div_ceil(32)],
         }
     }
@@ -145,7 +146,7 @@ impl<'a> FrameStore<'a> {
             kernels::convolve_pixel(
                 kernels,
                 &shape,
-                (store.taps, store.tap_scales),
+                (store.taps, store.tap_scale[0]),
                 (&projection.weight, projection.bias),
                 (row, column),
                 &mut store.map[cell * feature_dim..][..feature_dim],
@@ -169,20 +170,19 @@ impl<'a> FrameStore<'a> {
     }
 }
 
-/// Where `level` starts in each part of a [`FrameStore`]: map values, tap values, tap
-/// cells and computed-bit words.
-fn level_offsets(config: &ModelConfig, level: usize) -> (usize, usize, usize, usize) {
-    let (mut map_at, mut tap_at, mut cell_at, mut word_at) = (0, 0, 0, 0);
+/// Where `level` starts in each part of a [`FrameStore`]: map values, tap values and
+/// computed-bit words (the tap scales are one per level).
+fn level_offsets(config: &ModelConfig, level: usize) -> (usize, usize, usize) {
+    let (mut map_at, mut tap_at, mut word_at) = (0, 0, 0);
     for before in 0..level {
         let (height, width) = config.pyramid_size(before);
         map_at += height * width * config.feature_dim as usize;
         if config.projection_on_demand(before) {
             tap_at += height * width * config.pyramid_channels(before);
-            cell_at += height * width;
             word_at += (height * width).div_ceil(32);
         }
     }
-    (map_at, tap_at, cell_at, word_at)
+    (map_at, tap_at, word_at)
 }
 
 /// The 3x3 projection of tap C(level + 1) to `feature_dim` channels.
@@ -242,13 +242,11 @@ pub fn encode(
         let projection = &weights.projections[level];
         let store = frame.level(config, level);
         if config.projection_on_demand(level) {
-            kernels::store_input(
+            store.tap_scale[0] = kernels::store_input(
                 kernels,
                 &projection.weight,
                 &input[..shape.input_len()],
-                shape.in_channels,
                 store.taps,
-                store.tap_scales,
             );
             store.computed.fill(0);
         } else {

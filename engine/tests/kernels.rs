@@ -453,7 +453,7 @@ fn digit_planes(codes: &[i32]) -> Vec<i8> {
 }
 
 #[test]
-fn int8_convolution_sums_exactly_per_tap_then_scales() {
+fn int8_convolution_sums_exactly_over_the_kernel_then_scales() {
     let mut rng = Lcg(17);
     for case in 0..40 {
         let kernel = [1, 3, 5][rng.below(3)];
@@ -470,8 +470,7 @@ fn int8_convolution_sums_exactly_per_tap_then_scales() {
         );
         let values = random_codes(&mut rng, shape.input_len(), false);
         let planes = digit_planes(&values);
-        let rows = shape.in_height * shape.in_width;
-        let row_scales: Vec<f32> = (0..rows).map(|_| 0.01 + rng.next().abs()).collect();
+        let scale = 0.01 + rng.next().abs();
         let weight = random_i8(&mut rng, shape.weight_len());
         let mut packed = vec![1i8; shape.int8_weight_len()];
         scdp_engine::kernels::pack_int8_quads(&weight, in_channels, out_channels, &mut packed);
@@ -480,7 +479,7 @@ fn int8_convolution_sums_exactly_per_tap_then_scales() {
             .collect();
         let bias = rng.vec(out_channels);
         let mut output = vec![f32::NAN; shape.output_len()];
-        let input = DigitRows::from_planes(&planes, &row_scales, false);
+        let input = DigitRows::from_planes(&planes, scale, false);
         Scalar.conv_int8(
             &shape,
             &input,
@@ -490,13 +489,12 @@ fn int8_convolution_sums_exactly_per_tap_then_scales() {
             &mut output,
             Accumulate::Overwrite,
         );
-        // Textbook: exact integer sums per tap (in i64), scaled by the tap's row scale, in f64.
+        // Textbook: the exact integer sum over the kernel (in i64), scaled in f64.
         let (oh, ow) = (shape.out_height(), shape.out_width());
         for y in 0..oh {
             for x in 0..ow {
                 for o in 0..out_channels {
-                    let mut total = 0.0f64;
-                    let mut magnitude = 0.0f64;
+                    let mut sum = 0i64;
                     for ky in 0..kernel {
                         for kx in 0..kernel {
                             let iy = (y * stride + ky) as isize - padding as isize;
@@ -509,23 +507,22 @@ fn int8_convolution_sums_exactly_per_tap_then_scales() {
                                 continue;
                             }
                             let row = iy as usize * shape.in_width + ix as usize;
-                            let sum: i64 = (0..in_channels)
+                            sum += (0..in_channels)
                                 .map(|i| {
                                     values[row * in_channels + i] as i64
                                         * weight[((ky * kernel + kx) * in_channels + i)
                                             * out_channels
                                             + o] as i64
                                 })
-                                .sum();
-                            total += sum as f64 * row_scales[row] as f64;
-                            magnitude += (sum as f64 * row_scales[row] as f64).abs();
+                                .sum::<i64>();
                         }
                     }
-                    let expected = total * weight_scales[o] as f64 + bias[o] as f64;
+                    let scaled = sum as f64 * scale as f64 * weight_scales[o] as f64;
+                    let expected = scaled + bias[o] as f64;
                     let found = output[(y * ow + x) * out_channels + o] as f64;
-                    // Only the f32 scaling rounds: a few ulps of the summed magnitudes.
-                    let tolerance = 1e-6
-                        * (magnitude * weight_scales[o] as f64 + bias[o].abs() as f64).max(1e-6);
+                    // Only the f32 rounding of the sum and the three f32 operations after it
+                    // round: a few ulps of the magnitudes (an ulp is 6e-8 of them).
+                    let tolerance = 4e-7 * (scaled.abs() + bias[o].abs() as f64).max(1e-6);
                     assert!(
                         (found - expected).abs() <= tolerance,
                         "case {case} ({y},{x},{o}): {found} vs {expected}"
@@ -549,12 +546,12 @@ fn padded_codes(codes: &[i32], channels: usize) -> Vec<i16> {
     padded
 }
 
-/// A random int8 convolution on signed codes: the codes (unpadded), their scales, the
+/// A random int8 convolution on signed codes: the codes (unpadded), their scale, the
 /// weights (`[taps, in, out]` and packed in quads), weight scales and bias.
 struct CodeCase {
     shape: ConvShape,
     codes: Vec<i32>,
-    row_scales: Vec<f32>,
+    scale: f32,
     weight: Vec<i8>,
     packed: Vec<i8>,
     weight_scales: Vec<f32>,
@@ -563,7 +560,6 @@ struct CodeCase {
 
 impl CodeCase {
     fn random(rng: &mut Lcg, shape: ConvShape) -> Self {
-        let rows = shape.in_height * shape.in_width;
         let codes = random_codes(rng, shape.input_len(), false)
             .into_iter()
             .map(|code| if rng.below(2) == 0 { -code } else { code })
@@ -575,7 +571,7 @@ impl CodeCase {
         CodeCase {
             shape,
             codes,
-            row_scales: (0..rows).map(|_| 0.01 + rng.next().abs()).collect(),
+            scale: 0.01 + rng.next().abs(),
             weight,
             packed,
             weight_scales: (0..out_channels)
@@ -589,7 +585,7 @@ impl CodeCase {
         let codes = padded_codes(&self.codes, self.shape.in_channels);
         let input = CodeRows {
             codes: &codes,
-            scales: &self.row_scales,
+            scale: self.scale,
         };
         let mut output = initial.to_vec();
         kernels.conv_int8_codes(
@@ -605,11 +601,11 @@ impl CodeCase {
     }
 }
 
-/// The U-Net's int8 convolutions (signed codes) against the textbook: exact integer sums per
-/// tap, scaled by the tap's row scale, in f64; and bit for bit what `conv_int8` computes on
-/// the digit planes of the same codes (one contract, two storage forms).
+/// The U-Net's int8 convolutions (signed codes) against the textbook: the exact integer sum
+/// over the kernel, scaled, in f64; and bit for bit what `conv_int8` computes on the digit
+/// planes of the same codes (one contract, two storage forms).
 #[test]
-fn int8_code_convolution_sums_exactly_per_tap_then_scales() {
+fn int8_code_convolution_sums_exactly_over_the_kernel_then_scales() {
     let mut rng = Lcg(19);
     for case in 0..60 {
         let kernel = [1, 3, 5][rng.below(3)];
@@ -627,7 +623,7 @@ fn int8_code_convolution_sums_exactly_per_tap_then_scales() {
         let code_case = CodeCase::random(&mut rng, shape);
         let CodeCase {
             codes,
-            row_scales,
+            scale,
             weight,
             weight_scales,
             bias,
@@ -641,8 +637,7 @@ fn int8_code_convolution_sums_exactly_per_tap_then_scales() {
         );
         for t in 0..shape.out_width() {
             for o in 0..out_channels {
-                let mut total = 0.0f64;
-                let mut magnitude = 0.0f64;
+                let mut sum = 0i64;
                 for tap in 0..kernel {
                     let Some(row) = (t * stride + tap)
                         .checked_sub(padding)
@@ -650,20 +645,18 @@ fn int8_code_convolution_sums_exactly_per_tap_then_scales() {
                     else {
                         continue;
                     };
-                    let sum: i64 = (0..in_channels)
+                    sum += (0..in_channels)
                         .map(|i| {
                             codes[row * in_channels + i] as i64
                                 * weight[(tap * in_channels + i) * out_channels + o] as i64
                         })
-                        .sum();
-                    total += sum as f64 * row_scales[row] as f64;
-                    magnitude += (sum as f64 * row_scales[row] as f64).abs();
+                        .sum::<i64>();
                 }
-                let expected = total * weight_scales[o] as f64 + bias[o] as f64;
+                let scaled = sum as f64 * *scale as f64 * weight_scales[o] as f64;
+                let expected = scaled + bias[o] as f64;
                 let found = output[t * out_channels + o] as f64;
-                // Only the f32 scaling rounds: a few ulps of the summed magnitudes.
-                let tolerance =
-                    1e-6 * (magnitude * weight_scales[o] as f64 + bias[o].abs() as f64).max(1e-6);
+                // As for the digit planes: four f32 roundings.
+                let tolerance = 4e-7 * (scaled.abs() + bias[o].abs() as f64).max(1e-6);
                 assert!(
                     (found - expected).abs() <= tolerance,
                     "case {case} ({t},{o}): {found} vs {expected}"
@@ -671,7 +664,7 @@ fn int8_code_convolution_sums_exactly_per_tap_then_scales() {
             }
         }
         let planes = digit_planes(codes);
-        let digits = DigitRows::from_planes(&planes, row_scales, false);
+        let digits = DigitRows::from_planes(&planes, *scale, false);
         let mut from_digits = vec![f32::NAN; shape.output_len()];
         Scalar.conv_int8(
             &shape,
@@ -737,28 +730,29 @@ fn int8_code_convolution_is_bit_identical_on_every_backend() {
     }
 }
 
-/// The codes' sums are exact up to `MAX_DIGIT_CHANNELS` input channels at the extremes:
-/// every code +-16383 against weights of -128 and 127 (the largest products, either sign),
-/// on every backend, against the f64 value of the exact sum.
+/// The codes' sums are exact at the extremes: every code +-16383 against weights of -128
+/// and 127 (the largest products, either sign) over `MAX_DIGIT_CHANNELS` input channels
+/// and three taps, three times what i32 holds, on every backend, against the f32 rounding of
+/// the exact sum.
 #[test]
 fn int8_code_convolution_is_exact_at_the_extremes() {
     let channels = scdp_engine::kernels::MAX_DIGIT_CHANNELS;
-    let shape = ConvShape::sequence(4, channels, 32, 1, 1, 0);
+    let shape = ConvShape::sequence(4, channels, 32, 3, 1, 0);
     for (positive_codes, weight_value) in [(true, i8::MIN), (false, i8::MIN), (true, i8::MAX)] {
         let code = if positive_codes { 16383 } else { -16383 };
         let codes = vec![code as i16; shape.input_len()];
-        let row_scales = vec![1.0f32; 4];
         let weight = vec![weight_value; shape.weight_len()];
         let mut packed = vec![0i8; shape.int8_weight_len()];
         scdp_engine::kernels::pack_int8_quads(&weight, channels, 32, &mut packed);
         let ones = vec![1.0f32; 32];
         let zeros = vec![0.0f32; 32];
-        let exact = (code as i64 * weight_value as i64 * channels as i64) as f64;
+        let exact = code as i64 * weight_value as i64 * channels as i64 * 3;
+        assert!(exact.abs() > 2 * i32::MAX as i64);
         for (name, kernels) in backends() {
             let mut output = vec![f32::NAN; shape.output_len()];
             let input = CodeRows {
                 codes: &codes,
-                scales: &row_scales,
+                scale: 1.0,
             };
             kernels.conv_int8_codes(
                 &shape,
@@ -770,35 +764,36 @@ fn int8_code_convolution_is_exact_at_the_extremes() {
                 Accumulate::Overwrite,
             );
             for &value in &output {
-                assert_eq!(
-                    value as f64, exact as f32 as f64,
-                    "{name} {code} x {weight_value}"
-                );
+                assert_eq!(value, exact as f32, "{name} {code} x {weight_value}");
             }
         }
     }
 }
 
-/// Codes quantize within half a step of the input, keep the sign, pad rows to whole quads
-/// with zeros, and give the same codes and scales on every backend (NaN scale, zero codes
-/// for a non-finite row).
+/// Codes quantize within half a step of the input (one scale: the largest magnitude is
+/// code 16383), keep the sign, pad rows to whole quads with zeros, and give the same codes
+/// and scale on every backend; a non-finite value anywhere gives a NaN scale and zero
+/// codes.
 #[test]
 fn code_quantization_round_trips_and_pads_rows() {
     let mut rng = Lcg(41);
     for (rows, row_len) in [(16, 10), (4, 768), (8, 257), (1, 3)] {
         let mut input: Vec<f32> = rng.vec(rows * row_len).iter().map(|x| x * 4.0).collect();
-        input[..row_len].fill(0.0);
-        if rows > 2 {
-            input[2 * row_len + 1] = f32::NAN;
+        if rows > 1 {
+            input[..row_len].fill(0.0);
         }
+        let mut non_finite = input.clone();
+        non_finite[(rows - 1) * row_len] = f32::NAN;
         let stride = row_len.div_ceil(4) * 4;
-        let quantize = |kernels: &dyn Kernels| {
+        let quantize = |kernels: &dyn Kernels, input: &[f32]| {
             let mut codes = vec![7i16; rows * stride];
-            let mut scales = vec![0.0f32; rows];
-            kernels.quantize_codes(&input, row_len, &mut codes, &mut scales);
-            (codes, scales)
+            let scale = kernels.quantize_codes(input, row_len, &mut codes);
+            (codes, scale)
         };
-        let (codes, scales) = quantize(&Scalar);
+        let (codes, scale) = quantize(&Scalar, &input);
+        let largest = input.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+        assert_eq!(scale, largest / 16383.0);
+        assert!(codes.iter().any(|&c| c.abs() == 16383));
         for row in 0..rows {
             let values = &input[row * row_len..][..row_len];
             let row_codes = &codes[row * stride..][..stride];
@@ -806,24 +801,28 @@ fn code_quantization_round_trips_and_pads_rows() {
                 row_codes[row_len..].iter().all(|&c| c == 0),
                 "padding of row {row}"
             );
-            if values.iter().any(|v| !v.is_finite()) {
-                assert!(scales[row].is_nan());
-                assert!(row_codes.iter().all(|&c| c == 0));
-                continue;
-            }
             for (&value, &code) in values.iter().zip(row_codes) {
                 assert!(code.abs() <= 16383);
                 // Half a step, plus the f32 roundings of `x * (16383 / max)` (a few 2^-24
                 // of a code up to 16383: under 0.004 of a step).
-                let error = (value as f64 - code as f64 * scales[row] as f64).abs();
-                let tolerance = 0.504 * scales[row] as f64;
-                assert!(error <= tolerance, "{value} -> {code}");
+                let error = (value as f64 - code as f64 * scale as f64).abs();
+                assert!(error <= 0.504 * scale as f64, "{value} -> {code}");
             }
         }
+        let zeros = vec![0.0; input.len()];
+        assert_eq!(quantize(&Scalar, &zeros), (vec![0; rows * stride], 1.0));
+        let (nan_codes, nan_scale) = quantize(&Scalar, &non_finite);
+        assert!(nan_scale.is_nan());
+        assert!(nan_codes.iter().all(|&c| c == 0));
         for (name, kernels) in backends() {
-            let (found_codes, found_scales) = quantize(kernels);
+            let (found_codes, found_scale) = quantize(kernels, &input);
             assert_eq!(found_codes, codes, "{name} codes");
-            assert_same_bits(&found_scales, &scales, &format!("{name} scales"));
+            assert_eq!(found_scale.to_bits(), scale.to_bits(), "{name} scale");
+            let (found_codes, found_scale) = quantize(kernels, &non_finite);
+            assert!(
+                found_scale.is_nan() && found_codes == nan_codes,
+                "{name} non-finite"
+            );
         }
     }
 }
@@ -959,7 +958,7 @@ struct Int8Case {
     shape: ConvShape,
     /// 15-bit activation codes, `[H, W, in]`.
     values: Vec<i32>,
-    row_scales: Vec<f32>,
+    scale: f32,
     nonnegative: bool,
     /// `[kh, kw, in, out]`, before packing.
     weight: Vec<i8>,
@@ -969,10 +968,9 @@ struct Int8Case {
 
 impl Int8Case {
     fn random(rng: &mut Lcg, shape: ConvShape, nonnegative: bool) -> Self {
-        let rows = shape.in_height * shape.in_width;
         Int8Case {
             values: random_codes(rng, shape.input_len(), nonnegative),
-            row_scales: (0..rows).map(|_| 0.01 + rng.next().abs()).collect(),
+            scale: 0.01 + rng.next().abs(),
             nonnegative,
             weight: random_i8(rng, shape.weight_len()),
             weight_scales: (0..shape.out_channels)
@@ -986,7 +984,7 @@ impl Int8Case {
     /// The output of `kernels`, starting from `initial` (for [`Accumulate::Add`]).
     fn run(&self, kernels: &dyn Kernels, accumulate: Accumulate, initial: &[f32]) -> Vec<f32> {
         let (packed, planes) = self.packed();
-        let input = DigitRows::from_planes(&planes, &self.row_scales, self.nonnegative);
+        let input = DigitRows::from_planes(&planes, self.scale, self.nonnegative);
         let mut output = initial.to_vec();
         kernels.conv_int8(
             &self.shape,
@@ -1015,7 +1013,7 @@ impl Int8Case {
     #[cfg(target_arch = "x86_64")]
     fn run_on_tiles(&self, amx: &Amx, accumulate: Accumulate, initial: &[f32]) -> Vec<f32> {
         let (packed, planes) = self.packed();
-        let input = DigitRows::from_planes(&planes, &self.row_scales, self.nonnegative);
+        let input = DigitRows::from_planes(&planes, self.scale, self.nonnegative);
         let mut output = initial.to_vec();
         let shape = &self.shape;
         assert!(
@@ -1202,7 +1200,7 @@ fn int8_convolution_is_exact_at_the_extremes() {
         let problem = Int8Case {
             shape,
             values: vec![16383; shape.input_len()],
-            row_scales: vec![1.0; 15],
+            scale: 1.0,
             nonnegative: true,
             weight,
             weight_scales: vec![1.0; out_channels],
@@ -1231,6 +1229,47 @@ fn int8_convolution_is_exact_at_the_extremes() {
     }
 }
 
+/// A digit plane's sums run over the whole kernel and only their exact combination
+/// `128 high + low` leaves i32: codes 16383 (both digits 127) against weights all 127 or
+/// all -128 over a 3x3 kernel of 512 channels, up to 4.5 times what i32 holds, on every
+/// backend (the AMX tiles included), borders and all, against the f32 rounding of the
+/// exact sum.
+#[test]
+fn int8_convolution_is_exact_over_the_whole_kernel() {
+    let in_channels = 512;
+    let out_channels = 32;
+    let shape = ConvShape::square((6, 7, in_channels), out_channels, 3, 1, 1);
+    for weight_value in [i8::MAX, i8::MIN] {
+        let problem = Int8Case {
+            shape,
+            values: vec![16383; shape.input_len()],
+            scale: 1.0,
+            nonnegative: true,
+            weight: vec![weight_value; shape.weight_len()],
+            weight_scales: vec![1.0; out_channels],
+            bias: vec![0.0; out_channels],
+        };
+        for (name, kernels) in backends() {
+            let found = problem.run(
+                kernels,
+                Accumulate::Overwrite,
+                &vec![0.0; shape.output_len()],
+            );
+            for y in 0..6i64 {
+                for x in 0..7i64 {
+                    let rows = 3 - i64::from(y == 0) - i64::from(y == 5);
+                    let columns = 3 - i64::from(x == 0) - i64::from(x == 6);
+                    let exact = rows * columns * 16383 * weight_value as i64 * in_channels as i64;
+                    let at = (y * 7 + x) as usize * out_channels;
+                    for &value in &found[at..at + out_channels] {
+                        assert_eq!(value, exact as f32, "{name} {weight_value} at ({y}, {x})");
+                    }
+                }
+            }
+        }
+    }
+}
+
 #[test]
 fn quantizing_reports_whether_every_value_is_nonnegative() {
     use scdp_engine::kernels::QuantizeScratch;
@@ -1239,26 +1278,23 @@ fn quantizing_reports_whether_every_value_is_nonnegative() {
     let relu: Vec<f32> = rng.vec(rows * row_len).iter().map(|x| x.max(0.0)).collect();
     let mut signed = relu.clone();
     signed[77] = -0.5;
-    // Rounds to zero next to the row's largest value: still nonnegative once quantized.
+    // Rounds to zero next to the largest value: still nonnegative once quantized.
     let mut tiny_negative = relu.clone();
     tiny_negative[3] = -1e-6;
     for (name, kernels) in backends() {
         for (input, expected) in [(&relu, true), (&signed, false), (&tiny_negative, true)] {
             let mut values = vec![0i8; 2 * input.len()];
-            let mut scales = vec![0.0f32; rows];
             let mut scratch = QuantizeScratch {
                 values: &mut values,
-                scales: &mut scales,
             };
-            let digits = scratch.quantize(kernels, input, row_len);
-            assert_eq!(digits.high.nonnegative, expected, "{name}");
+            let digits = scratch.quantize(kernels, input);
+            assert_eq!(digits.nonnegative, expected, "{name}");
             assert_eq!(
-                digits.high.nonnegative,
-                digits.high.values.iter().all(|&q| q >= 0),
+                digits.nonnegative,
+                digits.high.iter().all(|&q| q >= 0),
                 "{name}"
             );
-            assert!(digits.low.nonnegative, "{name}");
-            assert!(digits.low.values.iter().all(|&q| q >= 0), "{name}");
+            assert!(digits.low.iter().all(|&q| q >= 0), "{name}");
         }
     }
 }
@@ -1320,16 +1356,14 @@ fn elementwise_operations_are_bit_identical_on_every_backend() {
             for input in [&data, &relu, &non_finite] {
                 let quantize = |kernels: &dyn Kernels| {
                     let mut values = vec![0i8; 2 * input.len()];
-                    let mut scales = vec![0.0f32; positions];
                     let (high, low) = values.split_at_mut(input.len());
-                    let nonnegative =
-                        kernels.quantize_rows(input, channels, (high, low), &mut scales);
-                    (values, scales, nonnegative)
+                    let (scale, nonnegative) = kernels.quantize_digits(input, (high, low));
+                    (values, scale, nonnegative)
                 };
-                let (values, scales, nonnegative) = quantize(*kernels);
-                let (expected_values, expected_scales, expected_nonnegative) = quantize(&Scalar);
+                let (values, scale, nonnegative) = quantize(*kernels);
+                let (expected_values, expected_scale, expected_nonnegative) = quantize(&Scalar);
                 assert_eq!(values, expected_values, "{what} quantized values");
-                assert_same_bits(&scales, &expected_scales, &format!("{what} scales"));
+                assert_same_bits(&[scale], &[expected_scale], &format!("{what} scale"));
                 assert_eq!(nonnegative, expected_nonnegative, "{what} nonnegative");
             }
         }
@@ -1388,9 +1422,8 @@ fn single_pixel_convolution_equals_the_dense_kernel_bit_for_bit() {
             );
             // ReLU-like inputs, flagged, so the SIMD int8 tiles run.
             let planes = digit_planes(&random_codes(&mut rng, shape.input_len(), true));
-            let rows = shape.in_height * shape.in_width;
-            let row_scales: Vec<f32> = (0..rows).map(|_| 0.01 + rng.next().abs()).collect();
-            let quantized = DigitRows::from_planes(&planes, &row_scales, true);
+            let scale = 0.01 + rng.next().abs();
+            let quantized = DigitRows::from_planes(&planes, scale, true);
             let weight_int8 = random_i8(&mut rng, shape.int8_weight_len());
             let weight_scales: Vec<f32> = (0..out_channels)
                 .map(|_| 0.001 + rng.next().abs() * 0.01)

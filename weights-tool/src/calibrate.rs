@@ -277,14 +277,8 @@ impl Kernels for Recorder {
             .matvec_weight_int8(weight, row_scales, input, base, output);
     }
 
-    fn quantize_rows(
-        &self,
-        input: &[f32],
-        row_len: usize,
-        digits: (&mut [i8], &mut [i8]),
-        scales: &mut [f32],
-    ) -> bool {
-        self.inner.quantize_rows(input, row_len, digits, scales)
+    fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {
+        self.inner.quantize_digits(input, digits)
     }
 
     fn group_norm(

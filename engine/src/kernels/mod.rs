@@ -343,18 +343,17 @@ pub trait Kernels: Sync {
     /// `output[r] = base[r] + sum_c weight[r, c] input[c]` for a row-major `[rows, cols]`.
     fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]);
 
-    /// [`conv`](Self::conv) on 15-bit activation codes, two int8 digit planes per input
-    /// position (`code = 128 high + low`, [`DigitRows`]) with one scale per position, the
+    /// [`conv`](Self::conv) on 15-bit activation codes in two int8 digit planes
+    /// (`code = 128 high + low`, [`DigitRows`]) with one scale for the whole input, the
     /// kernel in the quad layout of [`int8_quad_index`] (`shape.int8_weight_len()` values).
-    /// For each output position and kernel tap inside the input, the integer sum
-    /// `p[o] = sum_c code[c] q_w[c, o]` is exact in i32 (in channels up to
-    /// [`MAX_DIGIT_CHANNELS`]; the part every implementation must reproduce bit for bit, and
-    /// may compute as `128 sum high q_w + sum low q_w`); then
-    /// `acc[o] += p[o] as f32 * row_scale(tap's input position)` (a product, then a sum: two
-    /// roundings, not a fused multiply-add) over the taps in kernel order from `acc[o] = 0`,
-    /// and `output[o] = acc[o] * weight_scales[o] + bias[o]` (with [`Accumulate::Add`],
-    /// `output[o] += that`), again unfused. Every implementation therefore gives
-    /// bit-identical outputs.
+    /// For each output position, the integer sum `S[o] = sum code q_w` over every kernel tap
+    /// inside the input (padding reads zero codes) and every input channel is exact (the part
+    /// every implementation must reproduce; it may be computed as
+    /// `128 sum high q_w + sum low q_w`, each digit's sum exact in i32 for
+    /// [`MAX_DIGIT_TERMS`] products), then rounded once to f32 (to nearest);
+    /// `acc[o] = S[o] * input scale` and `output[o] = acc[o] * weight_scales[o] + bias[o]`
+    /// (with [`Accumulate::Add`], `output[o] += that`), each a product then a sum, not a
+    /// fused multiply-add. Every implementation therefore gives bit-identical outputs.
     #[allow(clippy::too_many_arguments)]
     fn conv_int8(
         &self,
@@ -369,8 +368,10 @@ pub trait Kernels: Sync {
 
     /// [`conv_int8`](Self::conv_int8) on the same 15-bit codes kept whole and signed
     /// ([`CodeRows`]: i16, rows padded to whole input-channel quads), for 1-D convolutions
-    /// (`in_height == 1`, the U-Net's): the same exact per-tap code sums, scaled, summed and
-    /// stored in the same order, so every implementation gives the same bits.
+    /// (`in_height == 1`, the U-Net's): the same exact code sums over all taps (exact in i32
+    /// per tap, up to [`MAX_DIGIT_CHANNELS`] inputs, not always over the whole kernel),
+    /// rounded, scaled and stored in the same order, so every implementation gives the same
+    /// bits.
     #[allow(clippy::too_many_arguments)]
     fn conv_int8_codes(
         &self,
@@ -394,25 +395,20 @@ pub trait Kernels: Sync {
         output: &mut [f32],
     );
 
-    /// [`ops::quantize_rows_split`]: per-row 15-bit symmetric quantization of `input` into
-    /// two int8 digit planes and `scales`, returning whether every code is nonnegative.
-    /// Element-wise, like the two methods below: implementations compile the portable code
-    /// for their vectors and give the same bits.
-    fn quantize_rows(
-        &self,
-        input: &[f32],
-        row_len: usize,
-        digits: (&mut [i8], &mut [i8]),
-        scales: &mut [f32],
-    ) -> bool {
-        ops::quantize_rows_split(input, row_len, digits, scales)
+    /// [`ops::quantize_split_signs`]: 15-bit symmetric quantization of `input`, one scale
+    /// for all of it, into two int8 digit planes; returns the scale and whether every code
+    /// is nonnegative. Element-wise, like the two methods below: implementations compile
+    /// the portable code for their vectors and give the same bits.
+    fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {
+        ops::quantize_split_signs(input, digits.0, digits.1)
     }
 
-    /// [`ops::quantize_rows_codes`]: per-row 15-bit symmetric quantization of `input` into
-    /// whole codes, rows padded to whole quads ([`CodeRows`]), and `scales`.
-    fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16], scales: &mut [f32]) {
+    /// [`ops::quantize_rows_codes`]: 15-bit symmetric quantization of `input`, one scale
+    /// for all of it, into whole codes, rows of `row_len` padded to whole quads
+    /// ([`CodeRows`]); returns the scale.
+    fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
         let row_stride = CodeRows::row_stride(row_len);
-        ops::quantize_rows_codes(input, (row_len, row_stride), codes, scales)
+        ops::quantize_rows_codes(input, (row_len, row_stride), codes)
     }
 
     /// [`ops::group_norm`], in place.
@@ -433,32 +429,24 @@ pub trait Kernels: Sync {
     }
 }
 
-/// Activations quantized for an int8 kernel, one symmetric scale per row (a pixel's or a
-/// timestep's channels): `value[r, c] ~ values[r, c] * scales[r]`.
-#[derive(Clone, Copy, Debug)]
-pub struct QuantizedRows<'a> {
-    pub values: &'a [i8],
-    pub scales: &'a [f32],
-    /// Every value is in 0..=127 (true of every ReLU output): the values then read the same
-    /// as u8, which the unsigned-by-signed integer dot products need. `false` only promises
-    /// nothing. For [`Kernels::conv_int8_pixel`] it need only hold on the rows that pixel's
-    /// taps read.
-    pub nonnegative: bool,
-}
-
-/// Input channels up to which the exact per-tap sum of [`Kernels::conv_int8`] fits i32:
+/// Input channels up to which the exact sum of one kernel tap fits i32:
 /// `|code| <= 16383`, `|q_w| <= 128`, `16383 x 128 x 1024 < 2^31`. ResNet-18's widest layer
 /// has 512.
 pub const MAX_DIGIT_CHANNELS: usize = 1024;
 
-/// Activations quantized to signed 15-bit codes ([`ops::quantize_codes`]), one scale per
-/// row (position), each row padded with zero codes to whole input-channel quads
-/// (`int8_quads(channels) * 4` codes a row), so a kernel reads four codes where the weights
-/// have a quad.
+/// Products (kernel taps x input channels) up to which a digit plane's exact sum over a
+/// whole kernel fits i32: `|digit| <= 128`, `|q_w| <= 128`, `16384 x 131072 = 2^31`. A 7x7
+/// kernel over [`MAX_DIGIT_CHANNELS`] inputs has 50,176.
+pub const MAX_DIGIT_TERMS: usize = 131_072;
+
+/// Activations quantized to signed 15-bit codes ([`ops::quantize_rows_codes`]) with one scale
+/// for the whole input (`value ~ code * scale`), each row (position) padded with zero codes
+/// to whole input-channel quads (`int8_quads(channels) * 4` codes a row), so a kernel reads
+/// four codes where the weights have a quad.
 #[derive(Clone, Copy, Debug)]
 pub struct CodeRows<'a> {
     pub codes: &'a [i16],
-    pub scales: &'a [f32],
+    pub scale: f32,
 }
 
 impl CodeRows<'_> {
@@ -469,65 +457,47 @@ impl CodeRows<'_> {
 }
 
 /// Arena space for quantizing one layer input: its two digit planes (the high digits, then
-/// the low ones) and one scale per row.
+/// the low ones), or its whole codes.
 #[derive(Debug)]
 pub struct QuantizeScratch<'a> {
     pub values: &'a mut [i8],
-    pub scales: &'a mut [f32],
 }
 
-/// Activations quantized to 15-bit codes in two int8 digit planes sharing their row scales
-/// ([`ops::quantize_split_signs`]); the low digits are always nonnegative.
+/// Activations quantized to 15-bit codes in two int8 digit planes
+/// ([`ops::quantize_split_signs`]) with one scale for the whole input:
+/// `value ~ (128 high + low) * scale`. The low digits are always nonnegative.
 #[derive(Clone, Copy, Debug)]
 pub struct DigitRows<'a> {
-    pub high: QuantizedRows<'a>,
-    pub low: QuantizedRows<'a>,
+    pub high: &'a [i8],
+    pub low: &'a [i8],
+    pub scale: f32,
+    /// Every code is nonnegative (true of every ReLU output): both digits are then in
+    /// 0..=127 and read the same as u8, which the unsigned-by-signed integer dot products
+    /// need. `false` only promises nothing. For [`Kernels::conv_int8_pixel`] it need only
+    /// hold on the rows that pixel's taps read.
+    pub nonnegative: bool,
 }
 
 impl<'a> DigitRows<'a> {
-    /// The view of planes written back to back in `values` (`2 rows row_len` bytes) with
-    /// `scales`; `nonnegative` is the high plane's flag.
-    pub fn from_planes(values: &'a [i8], scales: &'a [f32], nonnegative: bool) -> Self {
+    /// The view of planes written back to back in `values` (`2 rows row_len` bytes).
+    pub fn from_planes(values: &'a [i8], scale: f32, nonnegative: bool) -> Self {
         let (high, low) = values.split_at(values.len() / 2);
         DigitRows {
-            high: QuantizedRows {
-                values: high,
-                scales,
-                nonnegative,
-            },
-            low: QuantizedRows {
-                values: low,
-                scales,
-                nonnegative: true,
-            },
+            high,
+            low,
+            scale,
+            nonnegative,
         }
-    }
-
-    /// Every code is nonnegative (both digits in 0..=127, readable as u8).
-    pub fn nonnegative(&self) -> bool {
-        self.high.nonnegative
-    }
-
-    /// The row scales, shared by both planes.
-    pub fn scales(&self) -> &'a [f32] {
-        self.high.scales
     }
 }
 
 impl QuantizeScratch<'_> {
-    /// Quantizes `input`, rows of `row_len` values (the activation scheme of int8 weights
-    /// files, [`ops::quantize_split_signs`]), and returns the view.
-    pub fn quantize(
-        &mut self,
-        kernels: &dyn Kernels,
-        input: &[f32],
-        row_len: usize,
-    ) -> DigitRows<'_> {
-        let rows = input.len() / row_len;
+    /// Quantizes `input` (the activation scheme of int8 weights files,
+    /// [`ops::quantize_split_signs`]) and returns the view.
+    pub fn quantize(&mut self, kernels: &dyn Kernels, input: &[f32]) -> DigitRows<'_> {
         let (high, low) = self.values[..2 * input.len()].split_at_mut(input.len());
-        let scales = &mut self.scales[..rows];
-        let nonnegative = kernels.quantize_rows(input, row_len, (high, low), scales);
-        DigitRows::from_planes(&self.values[..2 * input.len()], scales, nonnegative)
+        let (scale, nonnegative) = kernels.quantize_digits(input, (high, low));
+        DigitRows::from_planes(&self.values[..2 * input.len()], scale, nonnegative)
     }
 
     /// Quantizes `input`, rows of `row_len` values, to whole codes ([`CodeRows`]) in the
@@ -541,14 +511,13 @@ impl QuantizeScratch<'_> {
         let rows = input.len() / row_len;
         let row_stride = CodeRows::row_stride(row_len);
         let codes: &mut [i16] = bytemuck::cast_slice_mut(&mut self.values[..2 * rows * row_stride]);
-        let scales = &mut self.scales[..rows];
-        kernels.quantize_codes(input, row_len, codes, scales);
-        CodeRows { codes, scales }
+        let scale = kernels.quantize_codes(input, row_len, codes);
+        CodeRows { codes, scale }
     }
 }
 
-/// How a layer with int8 weights quantizes its input (per row: pixel or position, 15-bit
-/// codes either way).
+/// How a layer with int8 weights quantizes its input (one scale for the whole input,
+/// 15-bit codes either way).
 #[derive(Debug)]
 pub enum Activations<'s, 'a> {
     /// Two digit planes for unsigned-by-signed byte dot products: the trunk, whose inputs
@@ -575,7 +544,7 @@ pub fn convolve(
     match (*weight, activations) {
         (Weight::F32(values), _) => kernels.conv(shape, input, values, bias, output, accumulate),
         (Weight::Int8 { values, scales }, Activations::Digits(scratch)) => {
-            let digits = scratch.quantize(kernels, input, shape.in_channels);
+            let digits = scratch.quantize(kernels, input);
             kernels.conv_int8(shape, &digits, values, scales, bias, output, accumulate)
         }
         (Weight::Int8 { values, scales }, Activations::Codes(scratch)) => {
@@ -586,34 +555,33 @@ pub fn convolve(
 }
 
 /// Keeps a layer's input for later [`convolve_pixel`] calls, in the form its weights
-/// read: copied for f32 weights; quantized per row (`row_len` values) for int8 weights,
-/// the two digit planes as bytes at the front of `values` and one scale per row in
-/// `scales`.
+/// read: copied for f32 weights; quantized for int8 weights, the two digit planes as bytes
+/// at the front of `values`. Returns the input's scale (1 for f32 weights, unused).
 pub fn store_input(
     kernels: &dyn Kernels,
     weight: &Weight<'_>,
     input: &[f32],
-    row_len: usize,
     values: &mut [f32],
-    scales: &mut [f32],
-) {
+) -> f32 {
     match weight {
-        Weight::F32(_) => values[..input.len()].copy_from_slice(input),
+        Weight::F32(_) => {
+            values[..input.len()].copy_from_slice(input);
+            1.0
+        }
         Weight::Int8 { .. } => {
             let bytes: &mut [i8] = bytemuck::cast_slice_mut(values);
             let (high, low) = bytes[..2 * input.len()].split_at_mut(input.len());
-            let scales = &mut scales[..input.len() / row_len];
-            kernels.quantize_rows(input, row_len, (high, low), scales);
+            kernels.quantize_digits(input, (high, low)).0
         }
     }
 }
 
 /// Output pixel `pixel` of [`convolve`] with [`Accumulate::Overwrite`], into `output`,
-/// from an input kept by [`store_input`] (`values`, `scales` as it left them).
+/// from an input kept by [`store_input`] (`values` and the scale it returned).
 pub fn convolve_pixel(
     kernels: &dyn Kernels,
     shape: &ConvShape,
-    (values, scales): (&[f32], &[f32]),
+    (values, scale): (&[f32], f32),
     (weight, bias): (&Weight<'_>, &[f32]),
     pixel: (usize, usize),
     output: &mut [f32],
@@ -637,8 +605,7 @@ pub fn convolve_pixel(
                     .iter()
                     .all(|&value| value >= 0)
             });
-            let scales = &scales[..shape.in_height * shape.in_width];
-            let digits = DigitRows::from_planes(values, scales, nonnegative);
+            let digits = DigitRows::from_planes(values, scale, nonnegative);
             kernels.conv_int8_pixel(shape, &digits, weights, weight_scales, bias, pixel, output)
         }
     }

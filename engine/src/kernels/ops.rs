@@ -318,8 +318,8 @@ pub const DIGIT_BASE: f32 = 128.0;
 /// `code = round(x / scale)` (ties away from zero) in [-16383, 16383], written as
 /// `high = floor(code / 128)` (in [-128, 127]; in [0, 127] for `code >= 0`) and
 /// `low = code - 128 high` (in [0, 127]). The int8 kernel sums each digit plane over the
-/// same weights with int8 dot products and forms `128 high + low` per tap, the exact code
-/// sum: activations within 3e-5 of their range (7 bits: 4e-3, which cost more accuracy
+/// same weights with int8 dot products and forms `128 high + low`, the exact code sum:
+/// activations within 3e-5 of their range (7 bits: 4e-3, which cost more accuracy
 /// than the int8 weights did) at the price of twice the integer products.
 /// Returns the scale (1 for an all-zero input, NaN for a non-finite one, with zero digits)
 /// and whether every code is nonnegative.
@@ -345,69 +345,37 @@ pub fn quantize_split_signs(input: &[f32], high: &mut [i8], low: &mut [i8]) -> (
     (largest / SPLIT_CODE_LIMIT, lowest >= 0)
 }
 
-/// The 15-bit codes of [`quantize_split_signs`] kept whole: `scale = max |x| / 16383`,
-/// `code = round(x / scale)` (ties away from zero) in [-16383, 16383], as i16 (the U-Net's
-/// activations, signed, for 16-bit integer dot products). Returns the scale (1 for an
-/// all-zero input, NaN for a non-finite one, with zero codes).
+/// The 15-bit codes of [`quantize_split_signs`] kept whole, rows of `row_len` values into
+/// rows of `row_stride >= row_len` codes (the padding codes, up to whole input-channel
+/// quads, set to 0): `scale = max |x| / 16383` over the whole input, `code = round(x /
+/// scale)` (ties away from zero) in [-16383, 16383], as i16 (the U-Net's activations,
+/// signed, for 16-bit integer dot products). Returns the scale (1 for an all-zero input,
+/// NaN for a non-finite one, with zero codes).
 #[inline(always)]
-pub fn quantize_codes(input: &[f32], codes: &mut [i16]) -> f32 {
+pub fn quantize_rows_codes(
+    input: &[f32],
+    (row_len, row_stride): (usize, usize),
+    codes: &mut [i16],
+) -> f32 {
     let largest = largest_magnitude(input);
     if !largest.is_finite() || largest == 0.0 {
         codes.fill(0);
         return if largest == 0.0 { 1.0 } else { f32::NAN };
     }
     let inverse = SPLIT_CODE_LIMIT / largest;
-    for (code, &x) in codes.iter_mut().zip(input) {
-        // SAFETY: x is finite with |x| <= largest (finite, nonzero), so |x * inverse| is at
-        // most 16383 and a rounding.
-        *code = unsafe { round_half_away(x * inverse) }.clamp(-16383, 16383) as i16;
-    }
-    largest / SPLIT_CODE_LIMIT
-}
-
-/// [`quantize_codes`] per row of `row_len` values of `input`, into `codes` rows of
-/// `row_stride >= row_len` codes (the padding codes, up to whole input-channel quads, set
-/// to 0) and `scales` (one per row).
-#[inline(always)]
-pub fn quantize_rows_codes(
-    input: &[f32],
-    (row_len, row_stride): (usize, usize),
-    codes: &mut [i16],
-    scales: &mut [f32],
-) {
-    for ((row, codes), scale) in input
+    for (row, codes) in input
         .chunks_exact(row_len)
         .zip(codes.chunks_exact_mut(row_stride))
-        .zip(scales.iter_mut())
     {
         let (codes, padding) = codes.split_at_mut(row_len);
-        *scale = quantize_codes(row, codes);
+        for (code, &x) in codes.iter_mut().zip(row) {
+            // SAFETY: x is finite with |x| <= largest (finite, nonzero), so |x * inverse|
+            // is at most 16383 and a rounding.
+            *code = unsafe { round_half_away(x * inverse) }.clamp(-16383, 16383) as i16;
+        }
         padding.fill(0);
     }
-}
-
-/// [`quantize_split_signs`] per row of `row_len` values of `input`, into the digit planes
-/// `high` and `low` (each as long as `input`) and `scales` (one per row); returns whether
-/// every code is nonnegative (the low digits always are).
-#[inline(always)]
-pub fn quantize_rows_split(
-    input: &[f32],
-    row_len: usize,
-    (high, low): (&mut [i8], &mut [i8]),
-    scales: &mut [f32],
-) -> bool {
-    let mut nonnegative = true;
-    for (((row, high), low), scale) in input
-        .chunks_exact(row_len)
-        .zip(high.chunks_exact_mut(row_len))
-        .zip(low.chunks_exact_mut(row_len))
-        .zip(scales.iter_mut())
-    {
-        let row_nonnegative;
-        (*scale, row_nonnegative) = quantize_split_signs(row, high, low);
-        nonnegative &= row_nonnegative;
-    }
-    nonnegative
+    largest / SPLIT_CODE_LIMIT
 }
 
 #[cfg(test)]

@@ -2,7 +2,7 @@
 //! implementations are tested against it.
 
 use super::{
-    Accumulate, CodeRows, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS, QUAD, QuantizedRows,
+    Accumulate, CodeRows, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS, MAX_DIGIT_TERMS, QUAD,
     int8_quad_index, ops,
 };
 
@@ -152,10 +152,9 @@ fn assert_int8_inputs(
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
 ) {
     assert!(shape.in_channels <= MAX_DIGIT_CHANNELS);
-    assert_eq!(input.high.values.len(), shape.input_len());
-    assert_eq!(input.low.values.len(), shape.input_len());
-    assert_eq!(input.high.scales.len(), shape.in_height * shape.in_width);
-    assert_eq!(input.low.scales.len(), shape.in_height * shape.in_width);
+    assert!(shape.kernel_height * shape.kernel_width * shape.in_channels <= MAX_DIGIT_TERMS);
+    assert_eq!(input.high.len(), shape.input_len());
+    assert_eq!(input.low.len(), shape.input_len());
     assert_eq!(weight.len(), shape.int8_weight_len());
     assert_eq!(weight_scales.len(), shape.out_channels);
     assert_eq!(bias.len(), shape.out_channels);
@@ -174,7 +173,6 @@ pub(crate) fn assert_code_lengths(
         input.codes.len(),
         rows * CodeRows::row_stride(shape.in_channels)
     );
-    assert_eq!(input.scales.len(), rows);
     assert_eq!(weight.len(), shape.int8_weight_len());
     assert_eq!(weight_scales.len(), shape.out_channels);
     assert_eq!(bias.len(), shape.out_channels);
@@ -226,7 +224,8 @@ fn conv_int8_map(
 }
 
 /// The int8 convolution at output pixel `(out_y, out_x)`, output `channels` only, into
-/// `out` (the pixel's `out_channels` values), in the order [`Kernels::conv_int8`] prescribes.
+/// `out` (the pixel's `out_channels` values), as [`Kernels::conv_int8`] prescribes: the
+/// exact per-tap sums added up in i64 (exact), rounded to f32, scaled.
 pub(crate) fn conv_int8_pixel(
     shape: &ConvShape,
     input: &impl CodeSums,
@@ -238,15 +237,15 @@ pub(crate) fn conv_int8_pixel(
 ) {
     for block in channels.clone().step_by(INT8_BLOCK) {
         let width = (channels.end - block).min(INT8_BLOCK);
-        let mut totals = [0.0f32; INT8_BLOCK];
-        let totals = &mut totals[..width];
+        let mut sums = [0i64; INT8_BLOCK];
         for (row, tap) in taps_inside(shape, out_y, out_x) {
-            let sums = input.code_sums(shape, weight, (row, tap), block, width);
-            let scale = input.row_scale(row);
-            for (total, &sum) in totals.iter_mut().zip(&sums) {
-                *total += sum as f32 * scale;
+            let tap_sums = input.code_sums(shape, weight, (row, tap), block, width);
+            for (sum, &tap_sum) in sums.iter_mut().zip(&tap_sums) {
+                *sum += i64::from(tap_sum);
             }
         }
+        let scale = input.scale();
+        let totals: [f32; INT8_BLOCK] = core::array::from_fn(|o| sums[o] as f32 * scale);
         let channels = block..block + width;
         store_scaled(
             &mut out[channels.clone()],
@@ -258,7 +257,8 @@ pub(crate) fn conv_int8_pixel(
     }
 }
 
-/// Quantized activations as the reference reads them: the exact per-tap code sums.
+/// Quantized activations as the reference reads them: the exact per-tap code sums and the
+/// input's scale.
 pub(crate) trait CodeSums {
     /// `sum_c code[row, c] q_w[tap, c, o]` for the `width` output channels from `block`
     /// (`row_tap`: the input pixel and the kernel tap).
@@ -271,7 +271,7 @@ pub(crate) trait CodeSums {
         width: usize,
     ) -> [i32; INT8_BLOCK];
 
-    fn row_scale(&self, row: usize) -> f32;
+    fn scale(&self) -> f32;
 }
 
 impl CodeSums for DigitRows<'_> {
@@ -283,8 +283,8 @@ impl CodeSums for DigitRows<'_> {
         block: usize,
         width: usize,
     ) -> [i32; INT8_BLOCK] {
-        let high = digit_sums(shape, &self.high, weight, (row, tap), block, width);
-        let mut sums = digit_sums(shape, &self.low, weight, (row, tap), block, width);
+        let high = digit_sums(shape, self.high, weight, (row, tap), block, width);
+        let mut sums = digit_sums(shape, self.low, weight, (row, tap), block, width);
         for (sum, &high) in sums.iter_mut().zip(&high) {
             // `128 high + low` is the exact code sum (it fits i32, [`MAX_DIGIT_CHANNELS`]);
             // the high part alone may not, so the arithmetic wraps, which is exact modulo
@@ -294,8 +294,8 @@ impl CodeSums for DigitRows<'_> {
         sums
     }
 
-    fn row_scale(&self, row: usize) -> f32 {
-        self.scales()[row]
+    fn scale(&self) -> f32 {
+        self.scale
     }
 }
 
@@ -328,8 +328,8 @@ impl CodeSums for CodeRows<'_> {
         sums
     }
 
-    fn row_scale(&self, row: usize) -> f32 {
-        self.scales[row]
+    fn scale(&self) -> f32 {
+        self.scale
     }
 }
 
@@ -340,14 +340,14 @@ const DIGIT_BASE: i32 = ops::DIGIT_BASE as i32;
 /// `block`, one digit plane.
 fn digit_sums(
     shape: &ConvShape,
-    plane: &QuantizedRows<'_>,
+    plane: &[i8],
     weight: &[i8],
     (row, tap): (usize, usize),
     block: usize,
     width: usize,
 ) -> [i32; INT8_BLOCK] {
     let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
-    let pixel = &plane.values[row * in_channels..][..in_channels];
+    let pixel = &plane[row * in_channels..][..in_channels];
     // One partial sum per weight of a quad row, added up per output channel after the last
     // quad: the inner loop then runs over contiguous weights, which the compiler vectorizes
     // (integer sums are exact in any order).

@@ -6,35 +6,33 @@
 //! into 16 x 16 exact i32 sums: 16,384 products where `vpdpbusd` does 64. A block is 16
 //! pixels x 32 channels: the two activation tiles are the pixels' high and low digits, the
 //! two weight tiles 16 channels each, and the four sum tiles one per digit and weight tile,
-//! all eight tile registers. The contract sums exactly per kernel tap and scales each tap
-//! by its input pixel's scale, so the sum tiles cannot run across taps: per tap they are
-//! stored, each pixel's `128 high + low` formed, and added to f32 totals with AVX-512, in
-//! kernel order, exactly as the scalar reference does (same bits, tested on every backend).
+//! all eight tile registers. The contract's sums are exact over the whole kernel and the
+//! input has one scale, so the sum tiles run across taps and input channels alike: they
+//! are stored once per block and run of taps, and each pixel's `128 high + low` formed,
+//! rounded and scaled then (same bits as the scalar reference, tested on every backend).
 //!
-//! Channel blocks are the outer loop; inside one, a group of 128 pixels keeps its f32
-//! totals on the stack while the taps go by, and each tap's weights for the block are
-//! copied once into tile order ([`PackedTap`], at most 16 KB) for the group's eight blocks:
-//! read in place, a weight tile's rows lie `4 out_channels` bytes apart, a power of two
-//! that puts them all in two L1 sets. The kernel uses about 40 KB of stack.
+//! Channel blocks are the outer loop; inside one, a group of 128 pixels parks its exact
+//! sums on the stack (32 KB) between runs of taps, and a run's weights for the block are
+//! copied once into tile order ([`PackedRun`], at most 36 KB: every tap of layer1 and
+//! layer2, two of layer4) for the group's eight blocks. The kernel uses about 72 KB of stack.
 //!
 //! An activation tile is loaded straight from the input when its 16 pixels read input rows
 //! equally spaced (`tileloadd` takes a row stride: the inside of a map, stride 1 or 2);
 //! otherwise (padding, a tile wrapping onto the next output row, the short last tile) its
-//! rows are gathered into a scratch tile, zero where a pixel reads nothing, and the sums of
-//! those pixels are skipped as the reference skips them.
+//! rows are gathered into a scratch tile, zero where a pixel reads nothing (the padding's
+//! zero codes).
 //!
 //! Linux hands out the tile registers on request only (`arch_prctl(ARCH_REQ_XCOMP_PERM)`);
 //! without an OS (`target_os = "none"`) the firmware that set XCR0 has enabled them.
 
 use core::arch::asm;
 use core::arch::x86_64::{
-    __m512, _mm512_add_epi32, _mm512_add_ps, _mm512_cvtepi32_ps, _mm512_load_si512,
-    _mm512_loadu_ps, _mm512_loadu_si512, _mm512_mul_ps, _mm512_set1_ps, _mm512_setzero_ps,
-    _mm512_setzero_si512, _mm512_slli_epi32, _mm512_store_si512, _mm512_storeu_ps,
+    _mm512_add_ps, _mm512_load_si512, _mm512_loadu_ps, _mm512_loadu_si512, _mm512_mul_ps,
+    _mm512_set1_ps, _mm512_setzero_si512, _mm512_store_si512, _mm512_storeu_ps,
 };
 
 use super::avx512::Avx512;
-use super::int8::PixelTile;
+use super::int8::{PixelTile, exact_digits_zmm, round_zmm};
 use crate::kernels::ops::Activation;
 use crate::kernels::scalar::assert_int8_lengths;
 use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels, QUAD, int8_quad_index};
@@ -69,7 +67,7 @@ impl Amx {
     /// whole 64-channel steps up to [`MAX_IN_CHANNELS`], whole 32-channel blocks (other
     /// shapes go to [`Avx512`]). Every int8 layer of the model qualifies.
     pub fn covers(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
-        input.nonnegative()
+        input.nonnegative
             && shape.in_channels.is_multiple_of(CHANNELS_PER_STEP)
             && shape.in_channels <= MAX_IN_CHANNELS
             && shape.out_channels.is_multiple_of(BLOCK_CHANNELS)
@@ -186,11 +184,16 @@ static TILE_CONFIG: TileConfig = {
 #[repr(C, align(64))]
 struct TileBuffer([u8; ROWS * ROW_BYTES]);
 
-/// Input channels the packed weights of one tap hold at most (the widest ResNet-18 layer).
+/// Input channels an activation tile row can hold at most (the widest ResNet-18 layer).
 const MAX_IN_CHANNELS: usize = 512;
-/// Pixels whose f32 totals stay on the stack while the taps go by: the weights of one tap
-/// are packed once for all of them.
-const GROUP_PIXELS: usize = 8 * BLOCK_PIXELS;
+/// Bytes of packed weights a run of taps takes at most: all nine taps of a 3x3 layer up to
+/// 128 input channels (36 KB, ResNet-18's layer1 and layer2), two taps of the widest.
+const RUN_BYTES: usize = 9 * 128 * BLOCK_CHANNELS;
+const _: () = assert!(RUN_BYTES >= MAX_IN_CHANNELS * BLOCK_CHANNELS);
+/// Blocks of pixels whose sums are parked on the stack between runs of taps: the weights
+/// of a run are packed once for all of them.
+const GROUP_BLOCKS: usize = 8;
+const GROUP_PIXELS: usize = GROUP_BLOCKS * BLOCK_PIXELS;
 
 /// The input row each of a block's pixels (`origins`, the first `count` used) reads at a
 /// kernel tap, `None` in the padding or past the last pixel.
@@ -211,6 +214,28 @@ fn tap_rows(
     rows
 }
 
+/// The input rows a whole block of pixels on one output row (`origin`: where its first
+/// pixel's tap (0, 0) lies) reads at a kernel tap, as a first row and a row step, when all
+/// are inside the input: found in a few operations, where [`tap_rows`] takes one per pixel.
+fn line_source(
+    shape: &ConvShape,
+    (top, left): (isize, isize),
+    (kernel_y, kernel_x): (usize, usize),
+) -> Option<(usize, usize)> {
+    let in_y = top + kernel_y as isize;
+    let first_x = left + kernel_x as isize;
+    let last_x = first_x + ((BLOCK_PIXELS - 1) * shape.stride) as isize;
+    let inside = (0..shape.in_height as isize).contains(&in_y)
+        && first_x >= 0
+        && last_x < shape.in_width as isize;
+    inside.then(|| {
+        (
+            in_y as usize * shape.in_width + first_x as usize,
+            shape.stride,
+        )
+    })
+}
+
 /// Where an activation tile comes from at one tap: straight from the input (first row and
 /// row step, in input rows) when its 16 pixels read equally spaced rows, else gathered.
 fn direct_source(rows: &[Option<usize>]) -> Option<(usize, usize)> {
@@ -223,13 +248,24 @@ fn direct_source(rows: &[Option<usize>]) -> Option<(usize, usize)> {
         .then_some((first, step))
 }
 
-/// One tap's weights for one block of 32 output channels, as the weight tiles read them:
-/// per 64-channel step, two tiles of 16 quads x 16 channels, each 1 KB contiguous, so they
-/// stay in L1 across the pixel blocks that reuse them.
+/// A run of taps' weights for one block of 32 output channels, as the weight tiles read
+/// them: per tap and 64-channel step, two tiles of 16 quads x 16 channels, each 1 KB
+/// contiguous. Read in place, a weight tile's rows lie `4 out_channels` bytes apart, a
+/// power of two that puts them in a few cache sets (two of L1's; too few of L2's to hold
+/// layer4's block).
 #[repr(C, align(64))]
-struct PackedTap([u8; MAX_IN_CHANNELS * BLOCK_CHANNELS]);
+struct PackedRun([u8; RUN_BYTES]);
+
+/// The exact sums of one block: the high digits' for channels 0-15 and 16-31 of the block,
+/// then the low digits', as the sum tiles `tmm0`-`tmm3` hold them.
+type BlockSums = [TileBuffer; 4];
 
 /// The whole convolution on tiles.
+///
+/// Per block of 16 pixels x 32 channels the sum tiles run over every tap and input channel
+/// (the contract's sums are exact over the whole kernel), so they are stored once per run
+/// of taps whose packed weights fit [`RUN_BYTES`] (once per block for most layers), not
+/// once per tap.
 ///
 /// # Safety
 /// The CPU supports AVX-512F, AMX-TILE and AMX-INT8 and this thread may use the tile
@@ -244,67 +280,103 @@ unsafe fn conv(
 ) {
     let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
     let positions = shape.out_height() * shape.out_width();
-    let mut packed = PackedTap([0; MAX_IN_CHANNELS * BLOCK_CHANNELS]);
+    let taps = shape.kernel_height * shape.kernel_width;
+    let tap_bytes = in_channels * BLOCK_CHANNELS;
+    let run_taps = (RUN_BYTES / tap_bytes).min(taps);
+    let mut packed = PackedRun([0; RUN_BYTES]);
     let mut gathered = [TileBuffer([0; ROWS * ROW_BYTES]); 2];
-    let mut sums = [TileBuffer([0; ROWS * ROW_BYTES]); 4];
+    let mut sums = [[TileBuffer([0; ROWS * ROW_BYTES]); 4]; GROUP_BLOCKS];
     // SAFETY: the caller vouches for AMX and the permission; the configuration is a valid
     // palette-1 layout (64 aligned bytes).
     unsafe { asm!("ldtilecfg [{}]", in(reg) TILE_CONFIG.0.as_ptr(), options(nostack)) };
     for channel in (0..out_channels).step_by(BLOCK_CHANNELS) {
+        let single_run = run_taps == taps;
+        // SAFETY (both): AVX-512F; the run's taps are inside the kernel and their quads of
+        // the block's 32 channels inside `weight` (lengths asserted by the caller).
+        if single_run {
+            unsafe { pack_run(shape, weight, (channel, 0..taps), &mut packed) };
+        }
         for group in (0..positions).step_by(GROUP_PIXELS) {
             let group_count = (positions - group).min(GROUP_PIXELS);
-            let mut totals = [[_mm512_setzero_ps(); 2]; GROUP_PIXELS];
             // Worked out once per group, not once per tap (a division per pixel).
             let origins = PixelTile::<GROUP_PIXELS>::new(shape, group, group_count).origins;
-            for kernel_y in 0..shape.kernel_height {
-                for kernel_x in 0..shape.kernel_width {
-                    let tap = kernel_y * shape.kernel_width + kernel_x;
-                    let first_quad = int8_quad_index(in_channels, out_channels, tap, 0, channel);
-                    // SAFETY: AVX-512F; the tap's quads of the block's 32 channels are inside
-                    // `weight` (lengths asserted by the caller).
-                    unsafe { pack_tap(shape, &weight[first_quad..], &mut packed) };
-                    for block in (0..group_count).step_by(BLOCK_PIXELS) {
-                        let count = (group_count - block).min(BLOCK_PIXELS);
-                        let rows = tap_rows(shape, &origins[block..], count, (kernel_y, kernel_x));
-                        if rows.iter().all(Option::is_none) {
-                            continue;
-                        }
-                        let totals = &mut totals.as_chunks_mut().0[block / BLOCK_PIXELS];
-                        // SAFETY: the caller's promises; `rows` are inside the input.
-                        unsafe {
-                            tap_sums(shape, input, &packed, &rows, &mut gathered, &mut sums);
-                            add_tap(&rows, input.scales(), &sums, totals);
-                        }
-                    }
+            for first_tap in (0..taps).step_by(run_taps) {
+                let run = first_tap..(first_tap + run_taps).min(taps);
+                if !single_run {
+                    unsafe { pack_run(shape, weight, (channel, run.clone()), &mut packed) };
+                }
+                for block in (0..group_count).step_by(BLOCK_PIXELS) {
+                    let count = (group_count - block).min(BLOCK_PIXELS);
+                    let sums = &mut sums[block / BLOCK_PIXELS];
+                    // SAFETY: the caller's promises; the packed run holds `run`'s taps.
+                    unsafe {
+                        run_sums(
+                            shape,
+                            input,
+                            &packed,
+                            (&origins[block..], count),
+                            (run.clone(), first_tap == 0),
+                            &mut gathered,
+                            sums,
+                        )
+                    };
                 }
             }
-            let out = &mut output[group * out_channels + channel..];
             let parameters = (&weight_scales[channel..], &bias[channel..]);
-            // SAFETY: AVX-512F; the block's channels are inside the output and parameters.
-            unsafe {
-                store(
-                    &totals,
-                    group_count,
-                    parameters,
-                    out,
-                    out_channels,
-                    accumulate,
-                )
-            };
+            for block in (0..group_count).step_by(BLOCK_PIXELS) {
+                let count = (group_count - block).min(BLOCK_PIXELS);
+                let pixel = group + block;
+                let out = &mut output[pixel * out_channels + channel..];
+                // SAFETY: AVX-512F; the block's channels are inside the output and
+                // parameters.
+                unsafe {
+                    store(
+                        &sums[block / BLOCK_PIXELS],
+                        count,
+                        input.scale,
+                        parameters,
+                        (out, out_channels),
+                        accumulate,
+                    )
+                };
+            }
         }
     }
     // SAFETY: as for `ldtilecfg`; releasing lets the OS skip saving 8 KB of tile data.
     unsafe { asm!("tilerelease", options(nostack, nomem)) };
 }
 
+/// Copies the quads of 32 channels from `channel` of the taps `run` into tile order in
+/// `packed`, tap after tap.
+///
+/// # Safety
+/// AVX-512F; the taps are inside the kernel and hold the block's channels; the run's
+/// packed weights fit [`RUN_BYTES`].
+#[inline(always)]
+unsafe fn pack_run(
+    shape: &ConvShape,
+    weight: &[i8],
+    (channel, run): (usize, core::ops::Range<usize>),
+    packed: &mut PackedRun,
+) {
+    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+    let tap_bytes = in_channels * BLOCK_CHANNELS;
+    for (index, tap) in run.enumerate() {
+        let first_quad = int8_quad_index(in_channels, out_channels, tap, 0, channel);
+        let to = &mut packed.0[index * tap_bytes..][..tap_bytes];
+        // SAFETY: the caller's promises.
+        unsafe { pack_tap(shape, &weight[first_quad..], to) };
+    }
+}
+
 /// Copies one tap's quads of 32 channels (`weights` from quad 0 of the block's first
-/// channel) into the tile order of [`PackedTap`].
+/// channel) into tile order in `packed` (`in_channels * 32` bytes).
 ///
 /// # Safety
 /// AVX-512F; `weights` holds the tap's `in_channels / 4` quads of the block's channels,
 /// `4 out_channels` bytes apart.
 #[inline(always)]
-unsafe fn pack_tap(shape: &ConvShape, weights: &[i8], packed: &mut PackedTap) {
+unsafe fn pack_tap(shape: &ConvShape, weights: &[i8], packed: &mut [u8]) {
     let quad_stride = shape.out_channels * QUAD;
     for quad in 0..shape.in_channels / QUAD {
         let (step, row) = (quad / ROWS, quad % ROWS);
@@ -312,86 +384,124 @@ unsafe fn pack_tap(shape: &ConvShape, weights: &[i8], packed: &mut PackedTap) {
             let from = quad * quad_stride + tile * SUM_COLUMNS * QUAD;
             let to = ((2 * step + tile) * ROWS + row) * ROW_BYTES;
             // SAFETY: the caller's promise for `from`; `to` is a 64-byte row of `packed`,
-            // which holds `2 in_channels / 64` tiles.
+            // which holds `2 in_channels / 64` tiles, aligned as `PackedRun` is (every tap
+            // starts at a multiple of 2 KB).
             unsafe {
                 let bytes = _mm512_loadu_si512(weights[from..][..ROW_BYTES].as_ptr().cast());
-                _mm512_store_si512(packed.0[to..][..ROW_BYTES].as_mut_ptr().cast(), bytes);
+                _mm512_store_si512(packed[to..][..ROW_BYTES].as_mut_ptr().cast(), bytes);
             }
         }
     }
 }
 
-/// One tap's exact i32 sums of the block: `sums[vector]` holds the high digits' sums for
-/// channels `16 vector..` of the block, `sums[2 + vector]` the low digits'.
+/// Adds one run of taps to a block's exact sums (`sums`, tile order): starts them at zero
+/// when `first`, else from what the previous run stored.
 ///
 /// # Safety
-/// As for [`conv`]; every `Some` row is an input row; `packed` holds the tap's weights.
+/// As for [`conv`]; `packed` holds the run's taps; `origins` holds the block's `count`
+/// pixels.
 #[inline(always)]
-unsafe fn tap_sums(
+unsafe fn run_sums(
     shape: &ConvShape,
     input: &DigitRows<'_>,
-    packed: &PackedTap,
-    rows: &[Option<usize>; BLOCK_PIXELS],
+    packed: &PackedRun,
+    (origins, count): (&[(isize, isize)], usize),
+    (run, first): (core::ops::Range<usize>, bool),
     gathered: &mut [TileBuffer; 2],
-    sums: &mut [TileBuffer; 4],
+    sums: &mut BlockSums,
 ) {
     let in_channels = shape.in_channels;
-    let planes = [input.high.values, input.low.values];
-    let direct = direct_source(rows);
-    // SAFETY: tiles are configured (caller).
+    let planes = [input.high, input.low];
+    let [s0, s1, s2, s3] = sums;
+    let pointers = [s0, s1, s2, s3].map(|buffer| buffer.0.as_mut_ptr());
+    // SAFETY: tiles are configured (caller); each buffer is 16 rows of 64 bytes.
     unsafe {
-        asm!(
-            "tilezero tmm0",
-            "tilezero tmm1",
-            "tilezero tmm2",
-            "tilezero tmm3",
-            options(nostack, nomem)
-        )
-    };
-    for step in 0..in_channels / CHANNELS_PER_STEP {
-        let first_channel = step * CHANNELS_PER_STEP;
-        let mut sources = [(core::ptr::null::<i8>(), 0usize); 2];
-        for (digit, plane) in planes.iter().enumerate() {
-            sources[digit] = match direct {
-                Some((row, row_step)) => (
-                    plane[row * in_channels + first_channel..].as_ptr(),
-                    row_step * in_channels,
-                ),
-                None => {
-                    let buffer = &mut gathered[digit];
-                    // SAFETY: AVX-512F; each `Some` row holds `in_channels` values, so its
-                    // 64 from `first_channel` are readable; the buffer holds 16 rows of 64.
-                    unsafe { gather(plane, in_channels, first_channel, rows, buffer) };
-                    (buffer.0.as_ptr().cast::<i8>(), ROW_BYTES)
-                }
-            };
-        }
-        let weights = packed.0[2 * step * ROWS * ROW_BYTES..][..2 * ROWS * ROW_BYTES].as_ptr();
-        // SAFETY: the activation sources cover 16 rows of 64 bytes at their strides (direct
-        // rows are input rows; the gathered buffers are 16 x 64); the step's two weight
-        // tiles are the 2 KB of `packed` from `weights`.
-        unsafe {
+        if first {
             asm!(
-                "tileloadd tmm4, [{high} + {high_stride}]",
-                "tileloadd tmm5, [{low} + {low_stride}]",
-                "tileloadd tmm6, [{b0} + {sb}]",
-                "tileloadd tmm7, [{b1} + {sb}]",
-                "tdpbusd tmm0, tmm4, tmm6",
-                "tdpbusd tmm1, tmm4, tmm7",
-                "tdpbusd tmm2, tmm5, tmm6",
-                "tdpbusd tmm3, tmm5, tmm7",
-                high = in(reg) sources[0].0,
-                high_stride = in(reg) sources[0].1,
-                low = in(reg) sources[1].0,
-                low_stride = in(reg) sources[1].1,
-                b0 = in(reg) weights,
-                b1 = in(reg) weights.add(ROWS * ROW_BYTES),
-                sb = in(reg) ROW_BYTES,
+                "tilezero tmm0",
+                "tilezero tmm1",
+                "tilezero tmm2",
+                "tilezero tmm3",
+                options(nostack, nomem)
+            );
+        } else {
+            asm!(
+                "tileloadd tmm0, [{s0} + {stride}]",
+                "tileloadd tmm1, [{s1} + {stride}]",
+                "tileloadd tmm2, [{s2} + {stride}]",
+                "tileloadd tmm3, [{s3} + {stride}]",
+                s0 = in(reg) pointers[0],
+                s1 = in(reg) pointers[1],
+                s2 = in(reg) pointers[2],
+                s3 = in(reg) pointers[3],
+                stride = in(reg) ROW_BYTES,
                 options(nostack, readonly, preserves_flags)
             );
         }
     }
-    let [s0, s1, s2, s3] = sums;
+    let tap_bytes = in_channels * BLOCK_CHANNELS;
+    // A whole block on one output row: most taps read a line of the input.
+    let line = (count == BLOCK_PIXELS && origins[0].0 == origins[BLOCK_PIXELS - 1].0)
+        .then_some(origins[0]);
+    for (index, tap) in run.clone().enumerate() {
+        let kernel = (tap / shape.kernel_width, tap % shape.kernel_width);
+        let (direct, rows) = match line.and_then(|origin| line_source(shape, origin, kernel)) {
+            Some(direct) => (Some(direct), [None; BLOCK_PIXELS]),
+            None => {
+                let rows = tap_rows(shape, origins, count, kernel);
+                if rows.iter().all(Option::is_none) {
+                    continue;
+                }
+                (direct_source(&rows), rows)
+            }
+        };
+        for step in 0..in_channels / CHANNELS_PER_STEP {
+            let first_channel = step * CHANNELS_PER_STEP;
+            let mut sources = [(core::ptr::null::<i8>(), 0usize); 2];
+            for (digit, plane) in planes.iter().enumerate() {
+                sources[digit] = match direct {
+                    Some((row, row_step)) => (
+                        plane[row * in_channels + first_channel..].as_ptr(),
+                        row_step * in_channels,
+                    ),
+                    None => {
+                        let buffer = &mut gathered[digit];
+                        // SAFETY: AVX-512F; each `Some` row holds `in_channels` values, so
+                        // its 64 from `first_channel` are readable; the buffer holds 16
+                        // rows of 64.
+                        unsafe { gather(plane, in_channels, first_channel, &rows, buffer) };
+                        (buffer.0.as_ptr().cast::<i8>(), ROW_BYTES)
+                    }
+                };
+            }
+            let weights = packed.0[index * tap_bytes + 2 * step * ROWS * ROW_BYTES..]
+                [..2 * ROWS * ROW_BYTES]
+                .as_ptr();
+            // SAFETY: the activation sources cover 16 rows of 64 bytes at their strides
+            // (direct rows are input rows; the gathered buffers are 16 x 64); the step's two
+            // weight tiles are the 2 KB of `packed` from `weights`.
+            unsafe {
+                asm!(
+                    "tileloadd tmm4, [{high} + {high_stride}]",
+                    "tileloadd tmm5, [{low} + {low_stride}]",
+                    "tileloadd tmm6, [{b0} + {sb}]",
+                    "tileloadd tmm7, [{b1} + {sb}]",
+                    "tdpbusd tmm0, tmm4, tmm6",
+                    "tdpbusd tmm1, tmm4, tmm7",
+                    "tdpbusd tmm2, tmm5, tmm6",
+                    "tdpbusd tmm3, tmm5, tmm7",
+                    high = in(reg) sources[0].0,
+                    high_stride = in(reg) sources[0].1,
+                    low = in(reg) sources[1].0,
+                    low_stride = in(reg) sources[1].1,
+                    b0 = in(reg) weights,
+                    b1 = in(reg) weights.add(ROWS * ROW_BYTES),
+                    sb = in(reg) ROW_BYTES,
+                    options(nostack, readonly, preserves_flags)
+                );
+            }
+        }
+    }
     // SAFETY: each buffer is 16 rows of 64 bytes.
     unsafe {
         asm!(
@@ -399,10 +509,10 @@ unsafe fn tap_sums(
             "tilestored [{s1} + {stride}], tmm1",
             "tilestored [{s2} + {stride}], tmm2",
             "tilestored [{s3} + {stride}], tmm3",
-            s0 = in(reg) s0.0.as_mut_ptr(),
-            s1 = in(reg) s1.0.as_mut_ptr(),
-            s2 = in(reg) s2.0.as_mut_ptr(),
-            s3 = in(reg) s3.0.as_mut_ptr(),
+            s0 = in(reg) pointers[0],
+            s1 = in(reg) pointers[1],
+            s2 = in(reg) pointers[2],
+            s3 = in(reg) pointers[3],
             stride = in(reg) ROW_BYTES,
             options(nostack, preserves_flags)
         );
@@ -410,7 +520,7 @@ unsafe fn tap_sums(
 }
 
 /// Copies 64 activations from `step` of each pixel's row into `buffer`, zeros where the
-/// pixel reads nothing.
+/// pixel reads nothing (the padding: zero codes, as the contract reads it).
 ///
 /// # Safety
 /// AVX-512F; each `Some` row has `in_channels` values in `values`, `step + 64` of them.
@@ -434,64 +544,41 @@ unsafe fn gather(
     }
 }
 
-/// `totals[pixel] += (code sums as f32) * scale of the pixel's row`, a product then a sum,
-/// for the pixels that read a row at this tap; the code sum is `128 high + low`, wrapping
-/// as the scalar reference does (exact: the result fits i32).
-///
-/// # Safety
-/// AVX-512F; `scales` holds every `Some` row.
-#[inline(always)]
-unsafe fn add_tap(
-    rows: &[Option<usize>; BLOCK_PIXELS],
-    scales: &[f32],
-    sums: &[TileBuffer; 4],
-    totals: &mut [[__m512; 2]; BLOCK_PIXELS],
-) {
-    for (pixel, row) in rows.iter().enumerate() {
-        let Some(row) = *row else { continue };
-        let at = pixel * ROW_BYTES;
-        // SAFETY: AVX-512F; each sum buffer row is 64 aligned bytes.
-        unsafe {
-            let scale = _mm512_set1_ps(scales[row]);
-            for vector in 0..2 {
-                let high = _mm512_load_si512(sums[vector].0[at..].as_ptr().cast());
-                let low = _mm512_load_si512(sums[2 + vector].0[at..].as_ptr().cast());
-                let sum = _mm512_add_epi32(_mm512_slli_epi32::<7>(high), low);
-                let scaled = _mm512_mul_ps(_mm512_cvtepi32_ps(sum), scale);
-                totals[pixel][vector] = _mm512_add_ps(totals[pixel][vector], scaled);
-            }
-        }
-    }
-}
-
-/// `out (+)= totals * weight_scales + bias` for the block's `count` pixels, `stride` apart
-/// in `out`, unfused as the scalar reference does it.
+/// `out (+)= round(128 high + low) * scale * weight_scales + bias` for the block's `count`
+/// pixels, `stride` apart in `out`, each a product then a sum as the scalar reference does.
 ///
 /// # Safety
 /// AVX-512F; `weight_scales` and `bias` hold the block's 32 channels; `out` holds them for
 /// each of the `count` pixels.
 #[inline(always)]
 unsafe fn store(
-    totals: &[[__m512; 2]],
+    sums: &BlockSums,
     count: usize,
+    scale: f32,
     (weight_scales, bias): (&[f32], &[f32]),
-    out: &mut [f32],
-    stride: usize,
+    (out, stride): (&mut [f32], usize),
     accumulate: Accumulate,
 ) {
     let (weight_scales, bias) = (&weight_scales[..BLOCK_CHANNELS], &bias[..BLOCK_CHANNELS]);
-    for (pixel, total) in totals.iter().enumerate().take(count) {
+    for pixel in 0..count {
         let out = &mut out[pixel * stride..][..BLOCK_CHANNELS];
-        for (vector, &total) in total.iter().enumerate() {
-            let at = vector * SUM_COLUMNS;
-            // SAFETY: AVX-512F; 16 floats from `at` in each slice.
+        let at = pixel * ROW_BYTES;
+        for vector in 0..2 {
+            let channels = vector * SUM_COLUMNS;
+            // SAFETY: AVX-512F; each sum buffer row is 64 aligned bytes; 16 floats from
+            // `channels` in each slice.
             unsafe {
-                let scaled = _mm512_mul_ps(total, _mm512_loadu_ps(weight_scales[at..].as_ptr()));
-                let mut value = _mm512_add_ps(scaled, _mm512_loadu_ps(bias[at..].as_ptr()));
+                let high = _mm512_load_si512(sums[vector].0[at..].as_ptr().cast());
+                let low = _mm512_load_si512(sums[2 + vector].0[at..].as_ptr().cast());
+                let rounded = round_zmm(exact_digits_zmm(high, low));
+                let total = _mm512_mul_ps(rounded, _mm512_set1_ps(scale));
+                let weight_scale = _mm512_loadu_ps(weight_scales[channels..].as_ptr());
+                let scaled = _mm512_mul_ps(total, weight_scale);
+                let mut value = _mm512_add_ps(scaled, _mm512_loadu_ps(bias[channels..].as_ptr()));
                 if accumulate == Accumulate::Add {
-                    value = _mm512_add_ps(_mm512_loadu_ps(out[at..].as_ptr()), value);
+                    value = _mm512_add_ps(_mm512_loadu_ps(out[channels..].as_ptr()), value);
                 }
-                _mm512_storeu_ps(out[at..].as_mut_ptr(), value);
+                _mm512_storeu_ps(out[channels..].as_mut_ptr(), value);
             }
         }
     }
@@ -632,18 +719,12 @@ impl Kernels for Amx {
             .matvec_weight_int8(weight, row_scales, input, base, output)
     }
 
-    fn quantize_rows(
-        &self,
-        input: &[f32],
-        row_len: usize,
-        digits: (&mut [i8], &mut [i8]),
-        scales: &mut [f32],
-    ) -> bool {
-        self.avx512.quantize_rows(input, row_len, digits, scales)
+    fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {
+        self.avx512.quantize_digits(input, digits)
     }
 
-    fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16], scales: &mut [f32]) {
-        self.avx512.quantize_codes(input, row_len, codes, scales)
+    fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
+        self.avx512.quantize_codes(input, row_len, codes)
     }
 
     fn group_norm(

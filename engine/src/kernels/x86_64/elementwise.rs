@@ -10,27 +10,20 @@ macro_rules! backend {
         pub(crate) mod $module {
             use crate::kernels::ops::{self, Activation};
 
-            /// [`ops::quantize_rows_split`] on this backend's vectors.
+            /// [`ops::quantize_split_signs`] on this backend's vectors.
             #[target_feature(enable = $features)]
-            pub(crate) fn quantize_rows(
+            pub(crate) fn quantize_digits(
                 input: &[f32],
-                row_len: usize,
-                digits: (&mut [i8], &mut [i8]),
-                scales: &mut [f32],
-            ) -> bool {
-                ops::quantize_rows_split(input, row_len, digits, scales)
+                (high, low): (&mut [i8], &mut [i8]),
+            ) -> (f32, bool) {
+                ops::quantize_split_signs(input, high, low)
             }
 
             /// [`ops::quantize_rows_codes`] on this backend's vectors.
             #[target_feature(enable = $features)]
-            pub(crate) fn quantize_codes(
-                input: &[f32],
-                row_len: usize,
-                codes: &mut [i16],
-                scales: &mut [f32],
-            ) {
+            pub(crate) fn quantize_codes(input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
                 let row_stride = crate::kernels::CodeRows::row_stride(row_len);
-                ops::quantize_rows_codes(input, (row_len, row_stride), codes, scales)
+                ops::quantize_rows_codes(input, (row_len, row_stride), codes)
             }
 
             /// [`ops::group_norm`] on this backend's vectors.

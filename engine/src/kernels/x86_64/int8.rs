@@ -6,19 +6,20 @@
 //!
 //! A tile is `P` consecutive output positions (row-major over the output map, so a tile may
 //! wrap onto the next row, and maps of one or two pixels still use it) times `V` vectors of
-//! output channels. Per kernel tap, the tile's exact i32 sums are accumulated in registers
-//! over all input-channel quads, then converted and added to f32 totals with each pixel's
-//! row scale, in kernel order as the contract says. A pixel whose tap falls in the padding
-//! computes a sum of some other row that is thrown away: it is skipped exactly where the
-//! reference skips it, so border pixels need no separate path, and every output value is
-//! the same whichever tile (or the single-pixel path) computes it.
+//! output channels. The tile's exact i32 sums of one digit plane are accumulated in
+//! registers over every kernel tap and input-channel quad (the contract's sums run over the
+//! whole kernel and the input has one scale), then the two planes' sums combined exactly,
+//! rounded and scaled once. A pixel whose tap falls in the padding reads a row of zero
+//! codes ([`ZERO_ROW`]), as the convolution defines it, so border pixels need no separate
+//! path, and every output value is the same whichever tile (or the single-pixel path)
+//! computes it.
 //!
 //! Channel blocks are the outer loop and pixel tiles the inner one, so a block's weights
 //! (up to 295 KB, ResNet layer4 at 64 channels) stay in the L2 cache while every pixel
 //! reads them; the other order streamed the whole kernel from L3 once per pixel tile.
 //!
 //! The unsigned-by-signed byte products need activations in 0..=127, which every trunk input
-//! is (a ReLU output); [`QuantizedRows::nonnegative`] says so, and any other input goes to the
+//! is (a ReLU output); [`DigitRows::nonnegative`] says so, and any other input goes to the
 //! scalar reference.
 //!
 //! The U-Net's inputs have both signs: [`Kernels::conv_int8_codes`] reads whole signed codes
@@ -26,29 +27,35 @@
 //! lane (AVX-512 VNNI `vpdpwssd`, AVX2 `vpmaddwd`): the same tiles, the same exact sums.
 //! A quad's four weights of one output channel, widened, fill two lanes, which meet the
 //! same quad's codes broadcast as (c0, c1), (c2, c3); the two lanes of each channel are
-//! added once per tap.
+//! added once per tap, and the taps' i32 sums added exactly in f64 (a whole kernel's can
+//! exceed i32).
 //!
-//! [`QuantizedRows::nonnegative`]: crate::kernels::QuantizedRows::nonnegative
+//! [`DigitRows::nonnegative`]: crate::kernels::DigitRows::nonnegative
 //! [`Kernels::conv_int8_codes`]: crate::kernels::Kernels::conv_int8_codes
 
 use core::arch::x86_64::{
-    __m256, __m256i, __m512, __m512i, _MM_HINT_T0, _mm_loadu_si128, _mm_prefetch, _mm256_add_epi32,
-    _mm256_add_ps, _mm256_cvtepi8_epi16, _mm256_cvtepi32_ps, _mm256_hadd_epi32, _mm256_loadu_ps,
-    _mm256_loadu_si256, _mm256_madd_epi16, _mm256_maddubs_epi16, _mm256_mul_ps,
-    _mm256_permute4x64_epi64, _mm256_set1_epi16, _mm256_set1_epi32, _mm256_set1_epi64x,
-    _mm256_set1_ps, _mm256_setzero_ps, _mm256_setzero_si256, _mm256_slli_epi32, _mm256_storeu_ps,
-    _mm512_add_epi32, _mm512_add_ps, _mm512_cvtepi8_epi16, _mm512_cvtepi32_ps, _mm512_dpbusd_epi32,
-    _mm512_dpwssd_epi32, _mm512_loadu_ps, _mm512_loadu_si512, _mm512_mul_ps,
-    _mm512_permutex2var_epi32, _mm512_set1_epi32, _mm512_set1_epi64, _mm512_set1_ps,
-    _mm512_setr_epi32, _mm512_setzero_ps, _mm512_setzero_si512, _mm512_slli_epi32,
-    _mm512_storeu_ps,
+    __m256, __m256d, __m256i, __m512, __m512d, __m512i, _MM_HINT_T0, _mm_loadu_si128, _mm_prefetch,
+    _mm256_add_epi32, _mm256_add_pd, _mm256_add_ps, _mm256_castps_pd, _mm256_castsi256_si128,
+    _mm256_cvtepi8_epi16, _mm256_cvtepi32_pd, _mm256_cvtpd_ps, _mm256_extracti128_si256,
+    _mm256_hadd_epi32, _mm256_loadu_ps, _mm256_loadu_si256, _mm256_madd_epi16,
+    _mm256_maddubs_epi16, _mm256_mul_pd, _mm256_mul_ps, _mm256_permute4x64_epi64, _mm256_set_m128,
+    _mm256_set1_epi16, _mm256_set1_epi32, _mm256_set1_epi64x, _mm256_set1_pd, _mm256_set1_ps,
+    _mm256_setzero_pd, _mm256_setzero_si256, _mm256_storeu_ps, _mm512_add_epi32, _mm512_add_pd,
+    _mm512_add_ps, _mm512_castpd_ps, _mm512_castpd256_pd512, _mm512_castsi512_si256,
+    _mm512_cvtepi8_epi16, _mm512_cvtepi32_pd, _mm512_cvtpd_ps, _mm512_dpbusd_epi32,
+    _mm512_dpwssd_epi32, _mm512_extracti64x4_epi64, _mm512_insertf64x4, _mm512_loadu_ps,
+    _mm512_loadu_si512, _mm512_mul_pd, _mm512_mul_ps, _mm512_permutex2var_epi32, _mm512_set1_epi32,
+    _mm512_set1_epi64, _mm512_set1_pd, _mm512_set1_ps, _mm512_setr_epi32, _mm512_setzero_pd,
+    _mm512_setzero_si512, _mm512_storeu_ps,
 };
 
 use crate::kernels::scalar::{
     CodeSums, assert_code_lengths, assert_int8_lengths, assert_int8_pixel_lengths, conv_int8_pixel,
     conv_int8_pixels,
 };
-use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, QUAD, int8_quad_index};
+use crate::kernels::{
+    Accumulate, CodeRows, ConvShape, DigitRows, MAX_DIGIT_CHANNELS, QUAD, int8_quad_index,
+};
 
 /// An integer dot product over input-channel quads, `WIDTH` output channels a vector, and
 /// the f32 arithmetic around it.
@@ -62,9 +69,12 @@ pub(crate) unsafe trait Int8Lanes {
     type Integers: Copy;
     /// `WIDTH` f32 lanes.
     type Floats: Copy;
+    /// `WIDTH` integers held exactly in two vectors of f64 lanes: sums over a whole kernel
+    /// that i32 lanes cannot hold.
+    type Exact: Copy;
     const WIDTH: usize;
     unsafe fn zero_integers() -> Self::Integers;
-    unsafe fn zero_floats() -> Self::Floats;
+    unsafe fn zero_exact() -> Self::Exact;
     /// The quads of `WIDTH` output channels (`4 WIDTH` bytes).
     unsafe fn load_weights(from: *const i8) -> Self::Integers;
     /// Four activations, repeated in every lane.
@@ -76,9 +86,6 @@ pub(crate) unsafe trait Int8Lanes {
         activations: Self::Integers,
         weights: Self::Integers,
     ) -> Self::Integers;
-    /// `128 high + low` per lane, wrapping (exact when the result fits, as the contract's
-    /// code sums do).
-    unsafe fn combine_digits(high: Self::Integers, low: Self::Integers) -> Self::Integers;
     /// The quads of `WIDTH / 2` output channels (`2 WIDTH` bytes) widened to i16: lanes
     /// `2k` and `2k + 1` hold weights (0, 1) and (2, 3) of the `k`-th channel.
     unsafe fn widen_quads(from: *const i8) -> Self::Integers;
@@ -94,8 +101,12 @@ pub(crate) unsafe trait Int8Lanes {
     /// The sums of adjacent lane pairs: those of `first` (channels 0 .. WIDTH/2), then those
     /// of `second`, in channel order.
     unsafe fn add_lane_pairs(first: Self::Integers, second: Self::Integers) -> Self::Integers;
-    /// `total + (sum as f32) * scale`, a product then a sum (two roundings).
-    unsafe fn add_scaled(total: Self::Floats, sum: Self::Integers, scale: f32) -> Self::Floats;
+    /// `total + sum` per lane, exact (integers in f64 lanes, below 2^53).
+    unsafe fn add_exact(total: Self::Exact, sum: Self::Integers) -> Self::Exact;
+    /// `128 high + low` per lane, exact.
+    unsafe fn exact_digits(high: Self::Integers, low: Self::Integers) -> Self::Exact;
+    /// The exact integers rounded to f32 (to nearest), times `scale`: two roundings.
+    unsafe fn round_scaled(total: Self::Exact, scale: f32) -> Self::Floats;
     unsafe fn load(from: *const f32) -> Self::Floats;
     unsafe fn store(to: *mut f32, value: Self::Floats);
     unsafe fn mul(a: Self::Floats, b: Self::Floats) -> Self::Floats;
@@ -124,6 +135,7 @@ pub(crate) struct VnniZmm;
 unsafe impl Int8Lanes for PairSumsYmm {
     type Integers = __m256i;
     type Floats = __m256;
+    type Exact = (__m256d, __m256d);
     const WIDTH: usize = 8;
     #[inline(always)]
     unsafe fn zero_integers() -> __m256i {
@@ -131,9 +143,9 @@ unsafe impl Int8Lanes for PairSumsYmm {
         unsafe { _mm256_setzero_si256() }
     }
     #[inline(always)]
-    unsafe fn zero_floats() -> __m256 {
+    unsafe fn zero_exact() -> (__m256d, __m256d) {
         // SAFETY: the caller runs on AVX2 (trait contract).
-        unsafe { _mm256_setzero_ps() }
+        unsafe { (_mm256_setzero_pd(), _mm256_setzero_pd()) }
     }
     #[inline(always)]
     unsafe fn load_weights(from: *const i8) -> __m256i {
@@ -152,11 +164,6 @@ unsafe impl Int8Lanes for PairSumsYmm {
             let pairs = _mm256_maddubs_epi16(activations, weights);
             _mm256_add_epi32(sum, _mm256_madd_epi16(pairs, _mm256_set1_epi16(1)))
         }
-    }
-    #[inline(always)]
-    unsafe fn combine_digits(high: __m256i, low: __m256i) -> __m256i {
-        // SAFETY: the caller runs on AVX2 (trait contract).
-        unsafe { _mm256_add_epi32(_mm256_slli_epi32::<7>(high), low) }
     }
     #[inline(always)]
     unsafe fn widen_quads(from: *const i8) -> __m256i {
@@ -182,13 +189,33 @@ unsafe impl Int8Lanes for PairSumsYmm {
         unsafe { _mm256_permute4x64_epi64::<0b11_01_10_00>(_mm256_hadd_epi32(first, second)) }
     }
     #[inline(always)]
-    unsafe fn add_scaled(total: __m256, sum: __m256i, scale: f32) -> __m256 {
+    unsafe fn add_exact(total: (__m256d, __m256d), sum: __m256i) -> (__m256d, __m256d) {
         // SAFETY: the caller runs on AVX2 (trait contract).
         unsafe {
-            _mm256_add_ps(
-                total,
-                _mm256_mul_ps(_mm256_cvtepi32_ps(sum), _mm256_set1_ps(scale)),
+            let (low, high) = widen_ymm(sum);
+            (_mm256_add_pd(total.0, low), _mm256_add_pd(total.1, high))
+        }
+    }
+    #[inline(always)]
+    unsafe fn exact_digits(high: __m256i, low: __m256i) -> (__m256d, __m256d) {
+        // SAFETY: the caller runs on AVX2 (trait contract). Times 128 and the sum are exact
+        // for i32 digit sums in f64.
+        unsafe {
+            let base = _mm256_set1_pd(f64::from(DIGIT_BASE));
+            let (high, low) = (widen_ymm(high), widen_ymm(low));
+            (
+                _mm256_add_pd(_mm256_mul_pd(high.0, base), low.0),
+                _mm256_add_pd(_mm256_mul_pd(high.1, base), low.1),
             )
+        }
+    }
+    #[inline(always)]
+    unsafe fn round_scaled(total: (__m256d, __m256d), scale: f32) -> __m256 {
+        // SAFETY: the caller runs on AVX2 (trait contract). `vcvtpd2ps` rounds as MXCSR
+        // says, to nearest unless the caller changed it (Rust code never does).
+        unsafe {
+            let rounded = _mm256_set_m128(_mm256_cvtpd_ps(total.1), _mm256_cvtpd_ps(total.0));
+            _mm256_mul_ps(rounded, _mm256_set1_ps(scale))
         }
     }
     #[inline(always)]
@@ -217,6 +244,7 @@ unsafe impl Int8Lanes for PairSumsYmm {
 unsafe impl Int8Lanes for VnniZmm {
     type Integers = __m512i;
     type Floats = __m512;
+    type Exact = (__m512d, __m512d);
     const WIDTH: usize = 16;
     #[inline(always)]
     unsafe fn zero_integers() -> __m512i {
@@ -224,9 +252,9 @@ unsafe impl Int8Lanes for VnniZmm {
         unsafe { _mm512_setzero_si512() }
     }
     #[inline(always)]
-    unsafe fn zero_floats() -> __m512 {
+    unsafe fn zero_exact() -> (__m512d, __m512d) {
         // SAFETY: the caller runs on AVX-512F (trait contract).
-        unsafe { _mm512_setzero_ps() }
+        unsafe { (_mm512_setzero_pd(), _mm512_setzero_pd()) }
     }
     #[inline(always)]
     unsafe fn load_weights(from: *const i8) -> __m512i {
@@ -242,11 +270,6 @@ unsafe impl Int8Lanes for VnniZmm {
     unsafe fn dot_quads(sum: __m512i, activations: __m512i, weights: __m512i) -> __m512i {
         // SAFETY: the caller runs on AVX-512 VNNI (trait contract).
         unsafe { _mm512_dpbusd_epi32(sum, activations, weights) }
-    }
-    #[inline(always)]
-    unsafe fn combine_digits(high: __m512i, low: __m512i) -> __m512i {
-        // SAFETY: the caller runs on AVX-512F (trait contract).
-        unsafe { _mm512_add_epi32(_mm512_slli_epi32::<7>(high), low) }
     }
     #[inline(always)]
     unsafe fn widen_quads(from: *const i8) -> __m512i {
@@ -278,14 +301,22 @@ unsafe impl Int8Lanes for VnniZmm {
         }
     }
     #[inline(always)]
-    unsafe fn add_scaled(total: __m512, sum: __m512i, scale: f32) -> __m512 {
+    unsafe fn add_exact(total: (__m512d, __m512d), sum: __m512i) -> (__m512d, __m512d) {
         // SAFETY: the caller runs on AVX-512F (trait contract).
         unsafe {
-            _mm512_add_ps(
-                total,
-                _mm512_mul_ps(_mm512_cvtepi32_ps(sum), _mm512_set1_ps(scale)),
-            )
+            let (low, high) = widen_zmm(sum);
+            (_mm512_add_pd(total.0, low), _mm512_add_pd(total.1, high))
         }
+    }
+    #[inline(always)]
+    unsafe fn exact_digits(high: __m512i, low: __m512i) -> (__m512d, __m512d) {
+        // SAFETY: the caller runs on AVX-512F (trait contract). As for AVX2.
+        unsafe { exact_digits_zmm(high, low) }
+    }
+    #[inline(always)]
+    unsafe fn round_scaled(total: (__m512d, __m512d), scale: f32) -> __m512 {
+        // SAFETY: the caller runs on AVX-512F (trait contract). As for AVX2.
+        unsafe { _mm512_mul_ps(round_zmm(total), _mm512_set1_ps(scale)) }
     }
     #[inline(always)]
     unsafe fn load(from: *const f32) -> __m512 {
@@ -308,6 +339,75 @@ unsafe impl Int8Lanes for VnniZmm {
         unsafe { _mm512_add_ps(a, b) }
     }
 }
+
+/// The eight i32 lanes as f64, low four then high four (exact).
+///
+/// # Safety
+/// AVX2.
+#[inline(always)]
+unsafe fn widen_ymm(sum: __m256i) -> (__m256d, __m256d) {
+    // SAFETY: the caller runs on AVX2.
+    unsafe {
+        (
+            _mm256_cvtepi32_pd(_mm256_castsi256_si128(sum)),
+            _mm256_cvtepi32_pd(_mm256_extracti128_si256::<1>(sum)),
+        )
+    }
+}
+
+/// The sixteen i32 lanes as f64, low eight then high eight (exact).
+///
+/// # Safety
+/// AVX-512F.
+#[inline(always)]
+unsafe fn widen_zmm(sum: __m512i) -> (__m512d, __m512d) {
+    // SAFETY: the caller runs on AVX-512F.
+    unsafe {
+        (
+            _mm512_cvtepi32_pd(_mm512_castsi512_si256(sum)),
+            _mm512_cvtepi32_pd(_mm512_extracti64x4_epi64::<1>(sum)),
+        )
+    }
+}
+
+/// `128 high + low` per lane of i32 digit sums, exact in f64 (the AMX kernel's too).
+///
+/// # Safety
+/// AVX-512F.
+#[inline(always)]
+pub(crate) unsafe fn exact_digits_zmm(high: __m512i, low: __m512i) -> (__m512d, __m512d) {
+    // SAFETY: the caller runs on AVX-512F.
+    unsafe {
+        let base = _mm512_set1_pd(f64::from(DIGIT_BASE));
+        let (high, low) = (widen_zmm(high), widen_zmm(low));
+        (
+            _mm512_add_pd(_mm512_mul_pd(high.0, base), low.0),
+            _mm512_add_pd(_mm512_mul_pd(high.1, base), low.1),
+        )
+    }
+}
+
+/// Sixteen exact integers in f64 lanes rounded to f32 (to nearest, as MXCSR says; Rust code
+/// never changes it), in lane order.
+///
+/// # Safety
+/// AVX-512F.
+#[inline(always)]
+pub(crate) unsafe fn round_zmm((low, high): (__m512d, __m512d)) -> __m512 {
+    // SAFETY: the caller runs on AVX-512F.
+    unsafe {
+        let low = _mm512_castpd256_pd512(_mm256_castps_pd(_mm512_cvtpd_ps(low)));
+        let high = _mm256_castps_pd(_mm512_cvtpd_ps(high));
+        _mm512_castpd_ps(_mm512_insertf64x4::<1>(low, high))
+    }
+}
+
+/// Base of the activation digits (`code = 128 high + low`).
+const DIGIT_BASE: i32 = crate::kernels::ops::DIGIT_BASE as i32;
+
+/// Zero codes that a pixel whose kernel tap falls in the padding reads instead of an input
+/// row (as digits: 2,048 zero bytes): a row of the widest input the kernels take.
+static ZERO_ROW: [i16; MAX_DIGIT_CHANNELS] = [0; MAX_DIGIT_CHANNELS];
 
 /// The pixels of one tile: how many there are (`count <= P`; the last tile of a map may be
 /// short) and where they read.
@@ -350,26 +450,25 @@ impl<const P: usize> PixelTile<P> {
 /// quads in each row (so a 4-byte activation load stays inside its pixel). The int8 layers
 /// of the model all qualify; the stem (3 channels, kept f32 by the tool) would not.
 pub(crate) fn tiles_apply(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
-    input.nonnegative() && shape.in_channels.is_multiple_of(QUAD)
+    input.nonnegative && shape.in_channels.is_multiple_of(QUAD)
 }
 
-/// The exact i32 sums of one kernel tap and one digit plane: `P` pixels (their activation
-/// rows) x `V` vectors of channels, over every input-channel quad. Kept apart from the f32
-/// side so the sums live in registers for the whole quad loop.
+/// `sums +` the exact i32 products of one kernel tap and one digit plane: `P` pixels (their
+/// activation rows) x `V` vectors of channels, over every input-channel quad. The sums stay
+/// in registers for the whole quad loop.
 ///
 /// # Safety
 /// The CPU supports `L`; each pointer in `activations` starts a row of `4 quads` readable
 /// bytes; `weights` points at quad 0 of the tap's first channel of the block, with `quads`
 /// quads of `out_channels` channels readable from there and `V WIDTH` channels in the block.
 #[inline(always)]
-unsafe fn digit_sums<L: Int8Lanes, const P: usize, const V: usize>(
+unsafe fn add_digit_products<L: Int8Lanes, const P: usize, const V: usize>(
+    mut sums: [[L::Integers; V]; P],
     activations: [*const i8; P],
     weights: *const i8,
     quads: usize,
     out_channels: usize,
 ) -> [[L::Integers; V]; P] {
-    // SAFETY: the caller runs on `L`'s CPU.
-    let mut sums = [[unsafe { L::zero_integers() }; V]; P];
     for quad in 0..quads {
         // SAFETY: quad `quad` of the block's channels and of each row is inside what the
         // caller vouched for.
@@ -389,49 +488,109 @@ unsafe fn digit_sums<L: Int8Lanes, const P: usize, const V: usize>(
     sums
 }
 
-/// Quantized activations as the SIMD tiles read them: the exact code sums of one kernel tap
-/// for a tile, and (through [`CodeSums`]) the reference's reading for what the tiles leave.
+/// Quantized activations as the SIMD tiles read them: the exact code sums of a tile over
+/// the whole kernel, rounded and scaled, and (through [`CodeSums`]) the reference's reading
+/// for what the tiles leave.
 pub(crate) trait TileInput: CodeSums {
-    /// The exact i32 code sums of one tap: `P` pixels (`rows`, the input pixels they read)
-    /// x `V` vectors of channels from the one whose quad 0 of the tap `weights` points at.
+    /// `round(S) * scale` for `P` pixels x `V` vectors of channels from `channel`, `S` the
+    /// exact code sums over every tap and input channel.
     ///
     /// # Safety
     /// The CPU supports `L`; the slices have the lengths `shape` implies; [`tiles_apply`]
-    /// holds for digit planes; the rows are inside the input; the block's `V WIDTH`
-    /// channels are inside the output channels.
-    unsafe fn tap_sums<L: Int8Lanes, const P: usize, const V: usize>(
+    /// holds for digit planes; `pixels` is a tile of this output; the block's `V WIDTH`
+    /// channels from `channel` are inside the output channels.
+    unsafe fn tile_totals<L: Int8Lanes, const P: usize, const V: usize>(
         &self,
         shape: &ConvShape,
-        rows: [usize; P],
-        weights: *const i8,
-    ) -> [[L::Integers; V]; P];
+        weight: &[i8],
+        pixels: &PixelTile<P>,
+        channel: usize,
+    ) -> [[L::Floats; V]; P];
+}
+
+/// Where each of a tile's pixels reads at one kernel tap: its input row of `row_stride`
+/// elements in `values`, or [`ZERO_ROW`] in the padding. `None` when no pixel reads the
+/// input at this tap (nothing to add).
+#[inline(always)]
+fn tap_sources<T: Copy, const P: usize>(
+    rows: [Option<usize>; P],
+    values: &[T],
+    row_stride: usize,
+) -> Option<[*const T; P]> {
+    rows.iter().any(Option::is_some).then(|| {
+        rows.map(|row| match row {
+            Some(row) => values[row * row_stride..][..row_stride].as_ptr(),
+            None => ZERO_ROW.as_ptr().cast(),
+        })
+    })
+}
+
+/// One digit plane's exact i32 sums over the whole kernel for a tile (exact:
+/// [`MAX_DIGIT_TERMS`]).
+///
+/// # Safety
+/// As for [`TileInput::tile_totals`]; `plane` is one of the input's digit planes.
+#[inline(always)]
+unsafe fn plane_sums<L: Int8Lanes, const P: usize, const V: usize>(
+    shape: &ConvShape,
+    plane: &[i8],
+    weight: &[i8],
+    pixels: &PixelTile<P>,
+    channel: usize,
+) -> [[L::Integers; V]; P] {
+    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+    // SAFETY: the caller runs on `L`'s CPU.
+    let mut sums = [[unsafe { L::zero_integers() }; V]; P];
+    for kernel_y in 0..shape.kernel_height {
+        for kernel_x in 0..shape.kernel_width {
+            let rows = pixels.rows(shape, kernel_y, kernel_x);
+            let Some(sources) = tap_sources(rows, plane, in_channels) else {
+                continue;
+            };
+            let tap = kernel_y * shape.kernel_width + kernel_x;
+            let first = int8_quad_index(in_channels, out_channels, tap, 0, channel);
+            // SAFETY: every source is an input row of `in_channels` = 4 quads values
+            // (`tiles_apply`) or the zero row, as long; the tap's quads of the block's
+            // channels are inside `weight` (the caller's promise).
+            sums = unsafe {
+                add_digit_products::<L, P, V>(
+                    sums,
+                    sources,
+                    weight[first..].as_ptr(),
+                    in_channels / QUAD,
+                    out_channels,
+                )
+            };
+        }
+    }
+    sums
 }
 
 impl TileInput for DigitRows<'_> {
-    /// Each digit plane summed over the same weights, combined into the code sums.
+    /// Each digit plane summed over the whole kernel in i32 (exact: [`MAX_DIGIT_TERMS`]),
+    /// the two combined exactly.
     #[inline(always)]
-    unsafe fn tap_sums<L: Int8Lanes, const P: usize, const V: usize>(
+    unsafe fn tile_totals<L: Int8Lanes, const P: usize, const V: usize>(
         &self,
         shape: &ConvShape,
-        rows: [usize; P],
-        weights: *const i8,
-    ) -> [[L::Integers; V]; P] {
-        let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
-        let quads = in_channels / QUAD;
-        // SAFETY: each row of either plane holds `in_channels` = 4 quads values
-        // (`tiles_apply`); the tap's quads of the block are readable (the caller's promise).
+        weight: &[i8],
+        pixels: &PixelTile<P>,
+        channel: usize,
+    ) -> [[L::Floats; V]; P] {
+        // SAFETY: the caller's promises, passed on.
         let (high, low) = unsafe {
-            let high = rows.map(|row| self.high.values.as_ptr().add(row * in_channels));
-            let low = rows.map(|row| self.low.values.as_ptr().add(row * in_channels));
             (
-                digit_sums::<L, P, V>(high, weights, quads, out_channels),
-                digit_sums::<L, P, V>(low, weights, quads, out_channels),
+                plane_sums::<L, P, V>(shape, self.high, weight, pixels, channel),
+                plane_sums::<L, P, V>(shape, self.low, weight, pixels, channel),
             )
         };
         core::array::from_fn(|pixel| {
             core::array::from_fn(|vector| {
                 // SAFETY: the caller runs on `L`'s CPU.
-                unsafe { L::combine_digits(high[pixel][vector], low[pixel][vector]) }
+                unsafe {
+                    let exact = L::exact_digits(high[pixel][vector], low[pixel][vector]);
+                    L::round_scaled(exact, self.scale)
+                }
             })
         })
     }
@@ -441,102 +600,76 @@ impl TileInput for DigitRows<'_> {
 const PREFETCH_QUADS: usize = 16;
 
 impl TileInput for CodeRows<'_> {
-    /// The codes times the widened weights, two lanes a channel, added up per tap.
+    /// The codes times the widened weights, two lanes a channel, added up per tap in i32
+    /// (exact: [`MAX_DIGIT_CHANNELS`]), the taps' sums in f64 (exact).
     #[inline(always)]
-    unsafe fn tap_sums<L: Int8Lanes, const P: usize, const V: usize>(
+    unsafe fn tile_totals<L: Int8Lanes, const P: usize, const V: usize>(
         &self,
         shape: &ConvShape,
-        rows: [usize; P],
-        weights: *const i8,
-    ) -> [[L::Integers; V]; P] {
-        let out_channels = shape.out_channels;
-        let row_stride = CodeRows::row_stride(shape.in_channels);
+        weight: &[i8],
+        pixels: &PixelTile<P>,
+        channel: usize,
+    ) -> [[L::Floats; V]; P] {
+        let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+        let row_stride = CodeRows::row_stride(in_channels);
         let quads = row_stride / QUAD;
-        // SAFETY: every row holds `quads` whole quads of codes (padded, `CodeRows`) and the
-        // tap's (zero-padded) quads of the block are readable: the caller's promises.
-        unsafe {
-            let codes = rows.map(|row| self.codes.as_ptr().add(row * row_stride));
-            // Per pixel and vector: the halves of its channels (lane pairs).
-            let mut sums = [[(L::zero_integers(), L::zero_integers()); V]; P];
-            for quad in 0..quads {
-                let row = weights.add(quad * out_channels * QUAD);
-                // The U-Net's weights come from L3 once per step, a quad row's `V WIDTH`
-                // channels (one or two cache lines) `4 out_channels` bytes apart: ask for
-                // the lines `PREFETCH_QUADS` rows ahead. A hint only (it never faults),
-                // hence the wrapping address.
-                let ahead = row.wrapping_add(PREFETCH_QUADS * out_channels * QUAD);
-                for line in (0..V * L::WIDTH * QUAD).step_by(64) {
-                    _mm_prefetch::<_MM_HINT_T0>(ahead.wrapping_add(line).cast());
-                }
-                let halves: [(L::Integers, L::Integers); V] = core::array::from_fn(|vector| {
-                    let first = row.add(vector * L::WIDTH * QUAD);
-                    (
-                        L::widen_quads(first),
-                        L::widen_quads(first.add(L::WIDTH * QUAD / 2)),
-                    )
-                });
-                for pixel in 0..P {
-                    let broadcast = L::broadcast_codes(codes[pixel].add(quad * QUAD));
-                    for vector in 0..V {
-                        let (low, high) = &mut sums[pixel][vector];
-                        *low = L::dot_code_pairs(*low, broadcast, halves[vector].0);
-                        *high = L::dot_code_pairs(*high, broadcast, halves[vector].1);
+        // SAFETY: the caller runs on `L`'s CPU.
+        let mut totals = [[unsafe { L::zero_exact() }; V]; P];
+        for kernel_y in 0..shape.kernel_height {
+            for kernel_x in 0..shape.kernel_width {
+                let rows = pixels.rows(shape, kernel_y, kernel_x);
+                let Some(codes) = tap_sources(rows, self.codes, row_stride) else {
+                    continue;
+                };
+                let tap = kernel_y * shape.kernel_width + kernel_x;
+                let weights =
+                    weight[int8_quad_index(in_channels, out_channels, tap, 0, channel)..].as_ptr();
+                // SAFETY: every source holds `quads` whole quads of codes (padded rows,
+                // `CodeRows`, or the zero row, at least as long); the tap's (zero-padded)
+                // quads of the block are readable: the caller's promises.
+                unsafe {
+                    // Per pixel and vector: the halves of its channels (lane pairs).
+                    let mut sums = [[(L::zero_integers(), L::zero_integers()); V]; P];
+                    for quad in 0..quads {
+                        let row = weights.add(quad * out_channels * QUAD);
+                        // The U-Net's weights come from L3 once per step, a quad row's
+                        // `V WIDTH` channels (one or two cache lines) `4 out_channels`
+                        // bytes apart: ask for the lines `PREFETCH_QUADS` rows ahead. A
+                        // hint only (it never faults), hence the wrapping address.
+                        let ahead = row.wrapping_add(PREFETCH_QUADS * out_channels * QUAD);
+                        for line in (0..V * L::WIDTH * QUAD).step_by(64) {
+                            _mm_prefetch::<_MM_HINT_T0>(ahead.wrapping_add(line).cast());
+                        }
+                        let halves: [(L::Integers, L::Integers); V] =
+                            core::array::from_fn(|vector| {
+                                let first = row.add(vector * L::WIDTH * QUAD);
+                                (
+                                    L::widen_quads(first),
+                                    L::widen_quads(first.add(L::WIDTH * QUAD / 2)),
+                                )
+                            });
+                        for pixel in 0..P {
+                            let broadcast = L::broadcast_codes(codes[pixel].add(quad * QUAD));
+                            for vector in 0..V {
+                                let (low, high) = &mut sums[pixel][vector];
+                                *low = L::dot_code_pairs(*low, broadcast, halves[vector].0);
+                                *high = L::dot_code_pairs(*high, broadcast, halves[vector].1);
+                            }
+                        }
+                    }
+                    for pixel in 0..P {
+                        for vector in 0..V {
+                            let (low, high) = sums[pixel][vector];
+                            let total = &mut totals[pixel][vector];
+                            *total = L::add_exact(*total, L::add_lane_pairs(low, high));
+                        }
                     }
                 }
             }
-            sums.map(|pixel| pixel.map(|(low, high)| L::add_lane_pairs(low, high)))
         }
+        // SAFETY: the caller runs on `L`'s CPU.
+        totals.map(|pixel| pixel.map(|total| unsafe { L::round_scaled(total, self.scale) }))
     }
-}
-
-/// The f32 totals of the tile `pixels` x `V WIDTH` channels from `channel`: per tap, the
-/// exact code sums, scaled by the row scale of the pixel each one read.
-///
-/// # Safety
-/// The CPU supports `L`; the slices have the lengths `shape` implies; [`tiles_apply`]
-/// holds for digit planes; `channel + V WIDTH <= out_channels`; `pixels` is a tile of this
-/// output.
-#[inline(always)]
-unsafe fn tile<L: Int8Lanes, I: TileInput, const P: usize, const V: usize>(
-    shape: &ConvShape,
-    input: &I,
-    weight: &[i8],
-    pixels: &PixelTile<P>,
-    channel: usize,
-) -> [[L::Floats; V]; P] {
-    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
-    // SAFETY: the caller runs on `L`'s CPU.
-    let mut totals = [[unsafe { L::zero_floats() }; V]; P];
-    for kernel_y in 0..shape.kernel_height {
-        for kernel_x in 0..shape.kernel_width {
-            let rows = pixels.rows(shape, kernel_y, kernel_x);
-            // A pixel off the input reads the first one on it; its sum is discarded below.
-            let Some(any_row) = rows.iter().flatten().next().copied() else {
-                continue;
-            };
-            let tap = kernel_y * shape.kernel_width + kernel_x;
-            let weights = &weight[int8_quad_index(in_channels, out_channels, tap, 0, channel)..];
-            // SAFETY: the rows are input pixels; the tap's quads of the block's `V WIDTH`
-            // channels are inside `weight` (`channel + V WIDTH <= out_channels`).
-            let sums = unsafe {
-                input.tap_sums::<L, P, V>(
-                    shape,
-                    rows.map(|row| row.unwrap_or(any_row)),
-                    weights.as_ptr(),
-                )
-            };
-            for pixel in 0..P {
-                let Some(row) = rows[pixel] else { continue };
-                let scale = input.row_scale(row);
-                for vector in 0..V {
-                    // SAFETY: the caller runs on `L`'s CPU.
-                    totals[pixel][vector] =
-                        unsafe { L::add_scaled(totals[pixel][vector], sums[pixel][vector], scale) };
-                }
-            }
-        }
-    }
-    totals
 }
 
 /// `out (+)= totals * weight_scales + bias` for `count` pixels whose channel blocks start
@@ -595,7 +728,7 @@ unsafe fn channel_blocks<L: Int8Lanes, I: TileInput, const P: usize, const V: us
             let pixels = PixelTile::<P>::new(shape, first, (positions - first).min(P));
             // SAFETY: the caller's promises; the block and the tile are inside the output.
             unsafe {
-                let totals = tile::<L, I, P, V>(shape, input, weight, &pixels, *channel);
+                let totals = input.tile_totals::<L, P, V>(shape, weight, &pixels, *channel);
                 let out = &mut output[first * out_channels + *channel..];
                 let parameters = (&weight_scales[block.clone()], &bias[block.clone()]);
                 store::<L, P, V>(
@@ -671,11 +804,11 @@ pub(crate) unsafe fn conv_pixel<L: Int8Lanes, const V: usize>(
         // SAFETY: the caller's promises; each block is inside `out_channels`.
         unsafe {
             if channel + V * L::WIDTH <= out_channels {
-                let totals = tile::<L, DigitRows<'_>, 1, V>(shape, input, weight, &pixels, channel);
+                let totals = input.tile_totals::<L, 1, V>(shape, weight, &pixels, channel);
                 store::<L, 1, V>(&totals, 1, parameters, out, 0, overwrite);
                 channel += V * L::WIDTH;
             } else if channel + L::WIDTH <= out_channels {
-                let totals = tile::<L, DigitRows<'_>, 1, 1>(shape, input, weight, &pixels, channel);
+                let totals = input.tile_totals::<L, 1, 1>(shape, weight, &pixels, channel);
                 store::<L, 1, 1>(&totals, 1, parameters, out, 0, overwrite);
                 channel += L::WIDTH;
             } else {

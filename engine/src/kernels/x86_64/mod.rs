@@ -90,26 +90,14 @@ macro_rules! shared_kernels {
             unsafe { sequence::$backend::matvec(weight, Some(row_scales), input, base, output) }
         }
 
-        fn quantize_rows(
-            &self,
-            input: &[f32],
-            row_len: usize,
-            digits: (&mut [i8], &mut [i8]),
-            scales: &mut [f32],
-        ) -> bool {
+        fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { elementwise::$backend::quantize_rows(input, row_len, digits, scales) }
+            unsafe { elementwise::$backend::quantize_digits(input, digits) }
         }
 
-        fn quantize_codes(
-            &self,
-            input: &[f32],
-            row_len: usize,
-            codes: &mut [i16],
-            scales: &mut [f32],
-        ) {
+        fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { elementwise::$backend::quantize_codes(input, row_len, codes, scales) }
+            unsafe { elementwise::$backend::quantize_codes(input, row_len, codes) }
         }
 
         fn group_norm(
