@@ -40,13 +40,13 @@ use core::arch::x86_64::{
     _mm256_hadd_epi32, _mm256_loadu_ps, _mm256_loadu_si256, _mm256_madd_epi16,
     _mm256_maddubs_epi16, _mm256_mul_pd, _mm256_mul_ps, _mm256_permute4x64_epi64, _mm256_set_m128,
     _mm256_set1_epi16, _mm256_set1_epi32, _mm256_set1_epi64x, _mm256_set1_pd, _mm256_set1_ps,
-    _mm256_setzero_pd, _mm256_setzero_si256, _mm256_storeu_ps, _mm512_add_epi32, _mm512_add_pd,
-    _mm512_add_ps, _mm512_castpd_ps, _mm512_castpd256_pd512, _mm512_castsi512_si256,
+    _mm256_setzero_pd, _mm256_setzero_ps, _mm256_setzero_si256, _mm256_storeu_ps, _mm512_add_epi32,
+    _mm512_add_pd, _mm512_add_ps, _mm512_castpd_ps, _mm512_castpd256_pd512, _mm512_castsi512_si256,
     _mm512_cvtepi8_epi16, _mm512_cvtepi32_pd, _mm512_cvtpd_ps, _mm512_dpbusd_epi32,
     _mm512_dpwssd_epi32, _mm512_extracti64x4_epi64, _mm512_insertf64x4, _mm512_loadu_ps,
     _mm512_loadu_si512, _mm512_mul_pd, _mm512_mul_ps, _mm512_permutex2var_epi32, _mm512_set1_epi32,
     _mm512_set1_epi64, _mm512_set1_pd, _mm512_set1_ps, _mm512_setr_epi32, _mm512_setzero_pd,
-    _mm512_setzero_si512, _mm512_storeu_ps,
+    _mm512_setzero_ps, _mm512_setzero_si512, _mm512_storeu_ps,
 };
 
 use crate::kernels::scalar::{
@@ -74,6 +74,7 @@ pub(crate) unsafe trait Int8Lanes {
     type Exact: Copy;
     const WIDTH: usize;
     unsafe fn zero_integers() -> Self::Integers;
+    unsafe fn zero_floats() -> Self::Floats;
     unsafe fn zero_exact() -> Self::Exact;
     /// The quads of `WIDTH` output channels (`4 WIDTH` bytes).
     unsafe fn load_weights(from: *const i8) -> Self::Integers;
@@ -141,6 +142,11 @@ unsafe impl Int8Lanes for PairSumsYmm {
     unsafe fn zero_integers() -> __m256i {
         // SAFETY: the caller runs on AVX2 (trait contract).
         unsafe { _mm256_setzero_si256() }
+    }
+    #[inline(always)]
+    unsafe fn zero_floats() -> __m256 {
+        // SAFETY: the caller runs on AVX2 (trait contract).
+        unsafe { _mm256_setzero_ps() }
     }
     #[inline(always)]
     unsafe fn zero_exact() -> (__m256d, __m256d) {
@@ -250,6 +256,11 @@ unsafe impl Int8Lanes for VnniZmm {
     unsafe fn zero_integers() -> __m512i {
         // SAFETY: the caller runs on AVX-512F (trait contract).
         unsafe { _mm512_setzero_si512() }
+    }
+    #[inline(always)]
+    unsafe fn zero_floats() -> __m512 {
+        // SAFETY: the caller runs on AVX-512F (trait contract).
+        unsafe { _mm512_setzero_ps() }
     }
     #[inline(always)]
     unsafe fn zero_exact() -> (__m512d, __m512d) {
@@ -525,42 +536,44 @@ fn tap_sources<T: Copy, const P: usize>(
     })
 }
 
-/// One digit plane's exact i32 sums over the whole kernel for a tile (exact:
-/// [`MAX_DIGIT_TERMS`]).
+/// Both digit planes' exact i32 sums over the whole kernel for a tile (exact:
+/// [`MAX_DIGIT_TERMS`]), high then low. Each tap's weights serve both planes while they
+/// are in L1; the tile is sized so both sets of sums stay in registers.
 ///
 /// # Safety
-/// As for [`TileInput::tile_totals`]; `plane` is one of the input's digit planes.
+/// As for [`TileInput::tile_totals`].
 #[inline(always)]
-unsafe fn plane_sums<L: Int8Lanes, const P: usize, const V: usize>(
+unsafe fn digit_sums<L: Int8Lanes, const P: usize, const V: usize>(
     shape: &ConvShape,
-    plane: &[i8],
+    input: &DigitRows<'_>,
     weight: &[i8],
     pixels: &PixelTile<P>,
     channel: usize,
-) -> [[L::Integers; V]; P] {
+) -> [[[L::Integers; V]; P]; 2] {
     let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
     // SAFETY: the caller runs on `L`'s CPU.
-    let mut sums = [[unsafe { L::zero_integers() }; V]; P];
+    let mut sums = [[[unsafe { L::zero_integers() }; V]; P]; 2];
     for kernel_y in 0..shape.kernel_height {
         for kernel_x in 0..shape.kernel_width {
             let rows = pixels.rows(shape, kernel_y, kernel_x);
-            let Some(sources) = tap_sources(rows, plane, in_channels) else {
+            let (Some(high), Some(low)) = (
+                tap_sources(rows, input.high, in_channels),
+                tap_sources(rows, input.low, in_channels),
+            ) else {
                 continue;
             };
             let tap = kernel_y * shape.kernel_width + kernel_x;
             let first = int8_quad_index(in_channels, out_channels, tap, 0, channel);
+            let weights = weight[first..].as_ptr();
+            let quads = in_channels / QUAD;
             // SAFETY: every source is an input row of `in_channels` = 4 quads values
             // (`tiles_apply`) or the zero row, as long; the tap's quads of the block's
             // channels are inside `weight` (the caller's promise).
-            sums = unsafe {
-                add_digit_products::<L, P, V>(
-                    sums,
-                    sources,
-                    weight[first..].as_ptr(),
-                    in_channels / QUAD,
-                    out_channels,
-                )
-            };
+            unsafe {
+                sums[0] =
+                    add_digit_products::<L, P, V>(sums[0], high, weights, quads, out_channels);
+                sums[1] = add_digit_products::<L, P, V>(sums[1], low, weights, quads, out_channels);
+            }
         }
     }
     sums
@@ -578,21 +591,21 @@ impl TileInput for DigitRows<'_> {
         channel: usize,
     ) -> [[L::Floats; V]; P] {
         // SAFETY: the caller's promises, passed on.
-        let (high, low) = unsafe {
-            (
-                plane_sums::<L, P, V>(shape, self.high, weight, pixels, channel),
-                plane_sums::<L, P, V>(shape, self.low, weight, pixels, channel),
-            )
-        };
-        core::array::from_fn(|pixel| {
-            core::array::from_fn(|vector| {
+        let [high, low] = unsafe { digit_sums::<L, P, V>(shape, self, weight, pixels, channel) };
+        // Loops, not `array::from_fn`: a closure does not inherit the caller's target
+        // features, and its intrinsics would become calls.
+        // SAFETY: the caller runs on `L`'s CPU.
+        let mut totals = [[unsafe { L::zero_floats() }; V]; P];
+        for pixel in 0..P {
+            for vector in 0..V {
                 // SAFETY: the caller runs on `L`'s CPU.
-                unsafe {
+                totals[pixel][vector] = unsafe {
                     let exact = L::exact_digits(high[pixel][vector], low[pixel][vector]);
                     L::round_scaled(exact, self.scale)
-                }
-            })
-        })
+                };
+            }
+        }
+        totals
     }
 }
 
@@ -668,7 +681,15 @@ impl TileInput for CodeRows<'_> {
             }
         }
         // SAFETY: the caller runs on `L`'s CPU.
-        totals.map(|pixel| pixel.map(|total| unsafe { L::round_scaled(total, self.scale) }))
+        let mut rounded = [[unsafe { L::zero_floats() }; V]; P];
+        for pixel in 0..P {
+            for vector in 0..V {
+                // SAFETY: the caller runs on `L`'s CPU.
+                rounded[pixel][vector] =
+                    unsafe { L::round_scaled(totals[pixel][vector], self.scale) };
+            }
+        }
+        rounded
     }
 }
 
@@ -829,13 +850,15 @@ pub(crate) unsafe fn conv_pixel<L: Int8Lanes, const V: usize>(
     }
 }
 
-/// Pixels and channel vectors of a tile, per backend: AVX2 has 16 YMM registers (8 sums,
-/// 2 weight vectors, the broadcast, the ones and a product); AVX-512 has 32 ZMM registers
-/// (24 sums, 4 weight vectors, the broadcast). Of the shapes tried on the panda layers of
-/// `--bench kernels`, these were the fastest: (4, 2) against (2, 2), (3, 2) and (4, 1) on
-/// AVX2; (6, 4) against (4, 4), (5, 4), (8, 2), (8, 3) and (12, 2) on AVX-512.
-const AVX2_TILE: (usize, usize) = (4, 2);
-const VNNI_TILE: (usize, usize) = (6, 4);
+/// Pixels and channel vectors of a tile, per backend, both digit planes' sums held across
+/// the kernel: AVX2 has 16 YMM registers (8 sums, 2 weight vectors, the broadcast, the ones
+/// and a product); AVX-512 has 32 ZMM registers (24 sums, 4 weight vectors, the
+/// broadcast). They are the one-plane tiles of session 5's search ((4, 2) on AVX2, (6, 4)
+/// on AVX-512, the fastest on the panda layers of `--bench kernels`) with half the pixels:
+/// a tile that ran the kernel once per plane read every tap's weights twice from L2, 1.27x
+/// the encode time on AVX-512 (in-process A/B).
+const AVX2_TILE: (usize, usize) = (2, 2);
+const VNNI_TILE: (usize, usize) = (3, 4);
 
 /// The same for signed codes, whose vectors of channels take two sums each: (4, 1) on AVX2
 /// (8 sums), (4, 2) on AVX-512 (16 sums, 4 widened weight halves, 4 broadcasts), the U-Net's
