@@ -61,6 +61,66 @@ fn anchor_error(fixture: &Fixture, anchors_per_step: &[Vec<f32>]) -> f64 {
         .fold(0.0, f64::max)
 }
 
+/// One config's part of the fidelity report: its printed lines, failures and file sizes.
+struct ConfigReport {
+    lines: Vec<String>,
+    failures: Vec<String>,
+    sizes: Vec<((String, &'static str), usize)>,
+}
+
+/// The report of one config's golden `cases` (name, path), calibrated once through the
+/// camera of its first case (every case of a config has the same camera).
+fn config_report(config_name: &str, cases: &[(String, std::path::PathBuf)]) -> ConfigReport {
+    let mut report = ConfigReport {
+        lines: Vec::new(),
+        failures: Vec::new(),
+        sizes: Vec::new(),
+    };
+    let mut gptq = None;
+    for (name, path) in cases {
+        let fixture = Fixture::load(path).unwrap();
+        let f32_file =
+            synthetic_weights_file_as(&fixture.config, fixture.seed, Quant::F32).unwrap();
+        let nearest =
+            synthetic_weights_file_as(&fixture.config, fixture.seed, Quant::Int8).unwrap();
+        let gptq = gptq.get_or_insert_with(|| calibrated_int8_weights_file(&fixture).unwrap());
+        report
+            .sizes
+            .push(((config_name.to_owned(), "f32"), f32_file.as_slice().len()));
+        report
+            .sizes
+            .push(((config_name.to_owned(), "int8"), gptq.as_slice().len()));
+
+        let f32_run = run_engine(f32_file.as_slice(), &fixture).unwrap();
+        let (f32_max, f32_mean) = action_errors(&fixture, &f32_run.action_pred);
+        let f32_px = anchor_error(&fixture, &f32_run.recorded.anchors_uv);
+        let nearest_run = run_engine(nearest.as_slice(), &fixture).unwrap();
+        let (nearest_max, nearest_mean) = action_errors(&fixture, &nearest_run.action_pred);
+        for backend in available_backends() {
+            let run = run_engine_with(gptq.as_slice(), &fixture, backend).unwrap();
+            let (max, mean) = action_errors(&fixture, &run.action_pred);
+            let px = anchor_error(&fixture, &run.recorded.anchors_uv);
+            let case = format!("{name} {backend:?}");
+            let met = max <= FLOOR_MAX && mean <= FLOOR_MEAN;
+            report.lines.push(format!(
+                "{case:<16} {f32_max:>9.2e} {f32_mean:>9.2e} {f32_px:>7.4} | {nearest_max:>9.2e} {nearest_mean:>9.2e} | {max:>9.2e} {mean:>9.2e} {px:>7.4}  {}",
+                if met { "met" } else { "not met" }
+            ));
+            if config_name != "tiny" && !met {
+                report.failures.push(format!(
+                    "{case}: int8 max {max:.3e} (floor {FLOOR_MAX}), mean {mean:.3e} (floor {FLOOR_MEAN})"
+                ));
+            }
+            if mean >= nearest_mean {
+                report.failures.push(format!(
+                    "{case}: GPTQ mean {mean:.3e} is not below round-to-nearest's {nearest_mean:.3e}"
+                ));
+            }
+        }
+    }
+    report
+}
+
 #[test]
 fn int8_fidelity_meets_the_floor_on_every_backend() {
     let mut failures = Vec::new();
@@ -76,10 +136,11 @@ fn int8_fidelity_meets_the_floor_on_every_backend() {
         "int8 mean",
         "int8 px"
     );
-    let mut sizes = std::collections::BTreeMap::new();
-    let mut calibrated = std::collections::BTreeMap::new();
+    // One thread per config (calibration is most of the time; CI has two cores), the
+    // report printed in fixture order afterwards.
+    let mut by_config: std::collections::BTreeMap<String, Vec<(String, std::path::PathBuf)>> =
+        std::collections::BTreeMap::new();
     for path in golden_fixtures() {
-        let fixture = Fixture::load(&path).unwrap();
         let name = path
             .strip_prefix(scdp_tests::tests_dir().join("fixtures/golden"))
             .unwrap()
@@ -87,44 +148,25 @@ fn int8_fidelity_meets_the_floor_on_every_backend() {
             .display()
             .to_string();
         let config_name = name.split('/').next().unwrap().to_owned();
-        let f32_file =
-            synthetic_weights_file_as(&fixture.config, fixture.seed, Quant::F32).unwrap();
-        let nearest =
-            synthetic_weights_file_as(&fixture.config, fixture.seed, Quant::Int8).unwrap();
-        // Calibrated once per config, through the camera of its first case (every case of a
-        // config has the same camera).
-        let gptq = calibrated
-            .entry(config_name.clone())
-            .or_insert_with(|| calibrated_int8_weights_file(&fixture).unwrap());
-        sizes.insert((config_name.clone(), "f32"), f32_file.as_slice().len());
-        sizes.insert((config_name.clone(), "int8"), gptq.as_slice().len());
-
-        let f32_run = run_engine(f32_file.as_slice(), &fixture).unwrap();
-        let (f32_max, f32_mean) = action_errors(&fixture, &f32_run.action_pred);
-        let f32_px = anchor_error(&fixture, &f32_run.recorded.anchors_uv);
-        let nearest_run = run_engine(nearest.as_slice(), &fixture).unwrap();
-        let (nearest_max, nearest_mean) = action_errors(&fixture, &nearest_run.action_pred);
-        for backend in available_backends() {
-            let run = run_engine_with(gptq.as_slice(), &fixture, backend).unwrap();
-            let (max, mean) = action_errors(&fixture, &run.action_pred);
-            let px = anchor_error(&fixture, &run.recorded.anchors_uv);
-            let case = format!("{name} {backend:?}");
-            let met = max <= FLOOR_MAX && mean <= FLOOR_MEAN;
-            println!(
-                "{case:<16} {f32_max:>9.2e} {f32_mean:>9.2e} {f32_px:>7.4} | {nearest_max:>9.2e} {nearest_mean:>9.2e} | {max:>9.2e} {mean:>9.2e} {px:>7.4}  {}",
-                if met { "met" } else { "not met" }
-            );
-            if config_name != "tiny" && !met {
-                failures.push(format!(
-                    "{case}: int8 max {max:.3e} (floor {FLOOR_MAX}), mean {mean:.3e} (floor {FLOOR_MEAN})"
-                ));
-            }
-            if mean >= nearest_mean {
-                failures.push(format!(
-                    "{case}: GPTQ mean {mean:.3e} is not below round-to-nearest's {nearest_mean:.3e}"
-                ));
-            }
+        by_config.entry(config_name).or_default().push((name, path));
+    }
+    let reports: Vec<ConfigReport> = std::thread::scope(|scope| {
+        let workers: Vec<_> = by_config
+            .iter()
+            .map(|(config_name, cases)| scope.spawn(move || config_report(config_name, cases)))
+            .collect();
+        workers
+            .into_iter()
+            .map(|worker| worker.join().expect("fidelity worker"))
+            .collect()
+    });
+    let mut sizes = std::collections::BTreeMap::new();
+    for report in reports {
+        for line in &report.lines {
+            println!("{line}");
         }
+        failures.extend(report.failures);
+        sizes.extend(report.sizes);
     }
     for ((config, quant), bytes) in &sizes {
         let path = scdp_tests::tests_dir().join(format!("configs/{config}.toml"));
