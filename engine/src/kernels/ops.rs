@@ -314,6 +314,31 @@ pub const SPLIT_CODE_LIMIT: f32 = 16383.0;
 /// Base of the two digits of a 14-bit activation code: `code = high * 128 + low`.
 pub const DIGIT_BASE: f32 = 128.0;
 
+/// The scale a 15-bit quantization reports when every code is zero: 1 for an all-zero
+/// input, NaN for a non-finite one (so the NaN reaches the result and the engine reports
+/// it); `None` when `largest` (the input's largest magnitude) leaves codes to compute.
+#[inline(always)]
+fn zero_code_scale(largest: f32) -> Option<f32> {
+    if largest == 0.0 {
+        Some(1.0)
+    } else if !largest.is_finite() {
+        Some(f32::NAN)
+    } else {
+        None
+    }
+}
+
+/// The 15-bit code of `x` for `inverse = 16383 / largest`: `round(x * inverse)`, ties away
+/// from zero, in [-16383, 16383].
+///
+/// # Safety
+/// `x` is finite and |x| <= `largest`, which is finite and nonzero.
+#[inline(always)]
+unsafe fn split_code(x: f32, inverse: f32) -> i32 {
+    // SAFETY: |x * inverse| is at most 16383 (the caller's promise), finite, and a rounding.
+    unsafe { round_half_away(x * inverse) }.clamp(-16383, 16383)
+}
+
 /// Symmetric 15-bit quantization split into two int8 digits: `scale = max |x| / 16383`,
 /// `code = round(x / scale)` (ties away from zero) in [-16383, 16383], written as
 /// `high = floor(code / 128)` (in [-128, 127]; in [0, 127] for `code >= 0`) and
@@ -326,17 +351,17 @@ pub const DIGIT_BASE: f32 = 128.0;
 #[inline(always)]
 pub fn quantize_split_signs(input: &[f32], high: &mut [i8], low: &mut [i8]) -> (f32, bool) {
     let largest = largest_magnitude(input);
-    if !largest.is_finite() || largest == 0.0 {
+    if let Some(scale) = zero_code_scale(largest) {
         high.fill(0);
         low.fill(0);
-        return (if largest == 0.0 { 1.0 } else { f32::NAN }, true);
+        return (scale, true);
     }
     let inverse = SPLIT_CODE_LIMIT / largest;
     let mut lowest = 0i32;
     for ((h, l), &x) in high.iter_mut().zip(low.iter_mut()).zip(input) {
-        // SAFETY: x is finite with |x| <= largest (finite, nonzero), so |x * inverse| is at
-        // most 16383 and a rounding.
-        let code = unsafe { round_half_away(x * inverse) }.clamp(-16383, 16383);
+        // SAFETY: x is one of the values `largest` was taken over, which is finite and
+        // nonzero.
+        let code = unsafe { split_code(x, inverse) };
         // An arithmetic shift floors, so `low` is the nonnegative remainder.
         *h = (code >> 7) as i8;
         *l = (code & 127) as i8;
@@ -358,9 +383,9 @@ pub fn quantize_rows_codes(
     codes: &mut [i16],
 ) -> f32 {
     let largest = largest_magnitude(input);
-    if !largest.is_finite() || largest == 0.0 {
+    if let Some(scale) = zero_code_scale(largest) {
         codes.fill(0);
-        return if largest == 0.0 { 1.0 } else { f32::NAN };
+        return scale;
     }
     let inverse = SPLIT_CODE_LIMIT / largest;
     for (row, codes) in input
@@ -369,9 +394,8 @@ pub fn quantize_rows_codes(
     {
         let (codes, padding) = codes.split_at_mut(row_len);
         for (code, &x) in codes.iter_mut().zip(row) {
-            // SAFETY: x is finite with |x| <= largest (finite, nonzero), so |x * inverse|
-            // is at most 16383 and a rounding.
-            *code = unsafe { round_half_away(x * inverse) }.clamp(-16383, 16383) as i16;
+            // SAFETY: as in `quantize_split_signs`.
+            *code = unsafe { split_code(x, inverse) } as i16;
         }
         padding.fill(0);
     }
