@@ -32,7 +32,7 @@ use core::arch::x86_64::{
 };
 
 use super::avx512::Avx512;
-use super::int8::{PixelTile, exact_digits_zmm, round_zmm};
+use super::int8::{PixelTile, exact_digits_zmm, round_zmm, tap_rows};
 use crate::kernels::ops::Activation;
 use crate::kernels::scalar::assert_int8_lengths;
 use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels, QUAD, int8_quad_index};
@@ -194,25 +194,6 @@ const _: () = assert!(RUN_BYTES >= MAX_IN_CHANNELS * BLOCK_CHANNELS);
 /// of a run are packed once for all of them.
 const GROUP_BLOCKS: usize = 8;
 const GROUP_PIXELS: usize = GROUP_BLOCKS * BLOCK_PIXELS;
-
-/// The input row each of a block's pixels (`origins`, the first `count` used) reads at a
-/// kernel tap, `None` in the padding or past the last pixel.
-fn tap_rows(
-    shape: &ConvShape,
-    origins: &[(isize, isize)],
-    count: usize,
-    (kernel_y, kernel_x): (usize, usize),
-) -> [Option<usize>; BLOCK_PIXELS] {
-    let mut rows = [None; BLOCK_PIXELS];
-    for (row, &(top, left)) in rows.iter_mut().zip(origins).take(count) {
-        let in_y = top + kernel_y as isize;
-        let in_x = left + kernel_x as isize;
-        let inside = (0..shape.in_height as isize).contains(&in_y)
-            && (0..shape.in_width as isize).contains(&in_x);
-        *row = inside.then(|| in_y as usize * shape.in_width + in_x as usize);
-    }
-    rows
-}
 
 /// The input rows a whole block of pixels on one output row (`origin`: where its first
 /// pixel's tap (0, 0) lies) reads at a kernel tap, as a first row and a row step, when all

@@ -54,7 +54,7 @@ use crate::kernels::scalar::{
     conv_int8_pixels,
 };
 use crate::kernels::{
-    Accumulate, CodeRows, ConvShape, DigitRows, MAX_DIGIT_CHANNELS, QUAD, int8_quad_index,
+    Accumulate, CodeRows, ConvShape, DigitRows, MAX_DIGIT_CHANNELS, QUAD, int8_quad_index, ops,
 };
 
 /// An integer dot product over input-channel quads, `WIDTH` output channels a vector, and
@@ -207,7 +207,7 @@ unsafe impl Int8Lanes for PairSumsYmm {
         // SAFETY: the caller runs on AVX2 (trait contract). Times 128 and the sum are exact
         // for i32 digit sums in f64.
         unsafe {
-            let base = _mm256_set1_pd(f64::from(DIGIT_BASE));
+            let base = _mm256_set1_pd(f64::from(ops::DIGIT_BASE));
             let (high, low) = (widen_ymm(high), widen_ymm(low));
             (
                 _mm256_add_pd(_mm256_mul_pd(high.0, base), low.0),
@@ -389,7 +389,7 @@ unsafe fn widen_zmm(sum: __m512i) -> (__m512d, __m512d) {
 pub(crate) unsafe fn exact_digits_zmm(high: __m512i, low: __m512i) -> (__m512d, __m512d) {
     // SAFETY: the caller runs on AVX-512F.
     unsafe {
-        let base = _mm512_set1_pd(f64::from(DIGIT_BASE));
+        let base = _mm512_set1_pd(f64::from(ops::DIGIT_BASE));
         let (high, low) = (widen_zmm(high), widen_zmm(low));
         (
             _mm512_add_pd(_mm512_mul_pd(high.0, base), low.0),
@@ -412,9 +412,6 @@ pub(crate) unsafe fn round_zmm((low, high): (__m512d, __m512d)) -> __m512 {
         _mm512_castpd_ps(_mm512_insertf64x4::<1>(low, high))
     }
 }
-
-/// Base of the activation digits (`code = 128 high + low`).
-const DIGIT_BASE: i32 = crate::kernels::ops::DIGIT_BASE as i32;
 
 /// Zero codes that a pixel whose kernel tap falls in the padding reads instead of an input
 /// row (as digits: 2,048 zero bytes): a row of the widest input the kernels take.
@@ -445,16 +442,28 @@ impl<const P: usize> PixelTile<P> {
     /// The input row (pixel) each pixel of the tile reads at kernel tap `(kernel_y,
     /// kernel_x)`, or `None` where the tap lies in the padding or the pixel is past `count`.
     fn rows(&self, shape: &ConvShape, kernel_y: usize, kernel_x: usize) -> [Option<usize>; P] {
-        core::array::from_fn(|pixel| {
-            let (top, left) = self.origins[pixel];
-            let in_y = top + kernel_y as isize;
-            let in_x = left + kernel_x as isize;
-            let inside = pixel < self.count
-                && (0..shape.in_height as isize).contains(&in_y)
-                && (0..shape.in_width as isize).contains(&in_x);
-            inside.then(|| in_y as usize * shape.in_width + in_x as usize)
-        })
+        tap_rows(shape, &self.origins, self.count, (kernel_y, kernel_x))
     }
+}
+
+/// The input row (pixel) each of the first `count` pixels whose tap (0, 0) lies at
+/// `origins` reads at kernel tap `(kernel_y, kernel_x)`: `None` in the padding and past
+/// `count` (the AMX kernel's blocks too).
+pub(crate) fn tap_rows<const P: usize>(
+    shape: &ConvShape,
+    origins: &[(isize, isize)],
+    count: usize,
+    (kernel_y, kernel_x): (usize, usize),
+) -> [Option<usize>; P] {
+    let mut rows = [None; P];
+    for (row, &(top, left)) in rows.iter_mut().zip(origins).take(count) {
+        let in_y = top + kernel_y as isize;
+        let in_x = left + kernel_x as isize;
+        let inside = (0..shape.in_height as isize).contains(&in_y)
+            && (0..shape.in_width as isize).contains(&in_x);
+        *row = inside.then(|| in_y as usize * shape.in_width + in_x as usize);
+    }
+    rows
 }
 
 /// Whether the SIMD int8 tiles apply: both digits readable as u8, and whole input-channel
