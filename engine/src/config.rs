@@ -2,6 +2,7 @@
 //! context, so firmware can plan its arena at compile time.
 
 use crate::error::ConfigError;
+use crate::frame::{STEM_KERNEL, STEM_PADDING, STEM_STRIDE};
 
 /// Which normalization the ResNet-18 trunk was trained with.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -257,8 +258,18 @@ impl ModelConfig {
     /// `(height, width)` of the stem convolution's output (stride 2).
     pub const fn stem_size(&self) -> (usize, usize) {
         (
-            conv_output(self.image_height as usize, 7, 2, 3),
-            conv_output(self.image_width as usize, 7, 2, 3),
+            conv_output(
+                self.image_height as usize,
+                STEM_KERNEL,
+                STEM_STRIDE,
+                STEM_PADDING,
+            ),
+            conv_output(
+                self.image_width as usize,
+                STEM_KERNEL,
+                STEM_STRIDE,
+                STEM_PADDING,
+            ),
         )
     }
 

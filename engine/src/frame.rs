@@ -1,8 +1,39 @@
 //! Camera frame -> network input: `x / 255` in f32, optionally ImageNet-normalized,
-//! kept channels-last `[H, W, 3]` (the trunk's layout).
+//! kept channels-last `[H, W, 3]` (the trunk's layout); or, for an int8 stem, the bytes
+//! themselves as the stem's patches.
+
+use core::ops::Range;
 
 use crate::config::ModelConfig;
 use crate::error::Error;
+use crate::kernels::QUAD;
+
+/// ResNet's stem convolution: 7x7, stride 2, padding 3, over the three colours.
+pub const STEM_KERNEL: usize = 7;
+pub const STEM_STRIDE: usize = 2;
+pub const STEM_PADDING: usize = 3;
+
+/// Values of one stem patch: each of the 49 taps a quad (the pixel's three bytes and a
+/// zero). An int8 kernel over three channels stores one quad a tap ([`int8_quad_index`]),
+/// so the stem's int8 kernel, as stored, is also the weight matrix of a 1x1 convolution
+/// over these patches, with no repacking.
+///
+/// [`int8_quad_index`]: crate::kernels::int8_quad_index
+pub const PATCH_CHANNELS: usize = STEM_KERNEL * STEM_KERNEL * QUAD;
+
+/// `(rows, columns)` of the image with the stem's zero padding around it.
+pub const fn padded_size(config: &ModelConfig) -> (usize, usize) {
+    (
+        config.image_height as usize + 2 * STEM_PADDING,
+        config.image_width as usize + 2 * STEM_PADDING,
+    )
+}
+
+/// Bytes of one digit plane of the padded image ([`pad_digits`]).
+pub const fn padded_plane_bytes(config: &ModelConfig) -> usize {
+    let (rows, columns) = padded_size(config);
+    rows * columns * QUAD
+}
 
 const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
 const IMAGENET_STD: [f32; 3] = [0.229, 0.224, 0.225];
@@ -14,6 +45,13 @@ pub const fn frame_bytes(config: &ModelConfig) -> usize {
 
 /// Checks the frame's size; writes `H W 3` values to the front of `output`.
 pub fn preprocess(config: &ModelConfig, image: &[u8], output: &mut [f32]) -> Result<(), Error> {
+    check_size(config, image)?;
+    normalize(config, image, output);
+    Ok(())
+}
+
+/// Fails unless `image` is one RGB frame of `config`'s size.
+pub fn check_size(config: &ModelConfig, image: &[u8]) -> Result<(), Error> {
     let expected = frame_bytes(config);
     if image.len() != expected {
         return Err(Error::ImageSize {
@@ -21,6 +59,11 @@ pub fn preprocess(config: &ModelConfig, image: &[u8], output: &mut [f32]) -> Res
             found: image.len(),
         });
     }
+    Ok(())
+}
+
+/// [`preprocess`] on an image of the right size.
+pub fn normalize(config: &ModelConfig, image: &[u8], output: &mut [f32]) {
     let (mean, std) = if config.imagenet_norm {
         (IMAGENET_MEAN, IMAGENET_STD)
     } else {
@@ -32,5 +75,57 @@ pub fn preprocess(config: &ModelConfig, image: &[u8], output: &mut [f32]) -> Res
             out[channel] = (pixel[channel] as f32 / 255.0 - mean[channel]) / std[channel];
         }
     }
-    Ok(())
+}
+
+/// The image bytes as two digit planes (`byte = 128 high + low`, both in 0..=127, what the
+/// int8 trunk kernels read), each pixel a quad (its colours and a zero), with the stem's
+/// padding of zero pixels around the image: `[rows, columns, 4]` of [`padded_size`] per
+/// plane, the high plane first in `planes` (at least `2 padded_plane_bytes` bytes).
+/// Without ImageNet normalization a zero byte is the network's zero, so these codes with
+/// the scale `1 / 255` are the stem's input exactly.
+pub fn pad_digits<'p>(
+    config: &ModelConfig,
+    image: &[u8],
+    planes: &'p mut [i8],
+) -> (&'p [i8], &'p [i8]) {
+    let plane_bytes = padded_plane_bytes(config);
+    let (high, rest) = planes.split_at_mut(plane_bytes);
+    let low = &mut rest[..plane_bytes];
+    high.fill(0);
+    low.fill(0);
+    let (_, columns) = padded_size(config);
+    let width = config.image_width as usize;
+    for (row, line) in image.chunks_exact(width * 3).enumerate() {
+        let start = ((row + STEM_PADDING) * columns + STEM_PADDING) * QUAD;
+        let high_row = high[start..][..width * QUAD].chunks_exact_mut(QUAD);
+        let low_row = low[start..][..width * QUAD].chunks_exact_mut(QUAD);
+        for ((pixel, high_quad), low_quad) in line.chunks_exact(3).zip(high_row).zip(low_row) {
+            for channel in 0..3 {
+                high_quad[channel] = (pixel[channel] >> 7) as i8;
+                low_quad[channel] = (pixel[channel] & 0x7f) as i8;
+            }
+        }
+    }
+    (high, low)
+}
+
+/// The stem's input patches of output rows `rows`, one digit plane of [`pad_digits`]:
+/// for each output pixel, [`PATCH_CHANNELS`] bytes, tap `(kernel_y, kernel_x)`'s quad at
+/// `4 (7 kernel_y + kernel_x)`. A kernel row's seven quads are adjacent in the padded
+/// plane, so each is one copy.
+pub fn patch_rows(config: &ModelConfig, padded: &[i8], rows: Range<usize>, patches: &mut [i8]) {
+    let (_, columns) = padded_size(config);
+    let (_, out_width) = config.stem_size();
+    let row_bytes = STEM_KERNEL * QUAD;
+    let mut pixels = patches.chunks_exact_mut(PATCH_CHANNELS);
+    for out_y in rows {
+        for out_x in 0..out_width {
+            let Some(patch) = pixels.next() else { return };
+            for (kernel_y, patch_row) in patch.chunks_exact_mut(row_bytes).enumerate() {
+                let start =
+                    ((out_y * STEM_STRIDE + kernel_y) * columns + out_x * STEM_STRIDE) * QUAD;
+                patch_row.copy_from_slice(&padded[start..][..row_bytes]);
+            }
+        }
+    }
 }

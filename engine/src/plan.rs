@@ -18,6 +18,7 @@
 
 use crate::config::{ModelConfig, PYRAMID_LEVELS, UNET_LEVELS};
 use crate::format::ALIGN;
+use crate::frame;
 
 const FLOATS_PER_LINE: usize = ALIGN / 4;
 
@@ -244,6 +245,9 @@ impl Lengths {
         let (c1_height, c1_width) = config.pyramid_size(0);
         let maxpool = c1_height as u64 * c1_width as u64 * config.stage_channels(0) as u64;
         largest_activation = max(largest_activation, maxpool);
+        // An int8 stem reads the image as two padded digit planes (bytes) instead.
+        let padded_image = (2 * frame::padded_plane_bytes(config) as u64).div_ceil(4);
+        largest_activation = max(largest_activation, padded_image);
         let trunk_activation = aligned(largest_activation);
         let trunk_stem = aligned(stem);
         let trunk = trunk_activation + max(trunk_stem, 3 * trunk_activation);
@@ -259,13 +263,15 @@ impl Lengths {
         // convolutions per block, 12 blocks, plus the resampling layers and the head).
         let unet_naive = 3 * 12 * horizon * 2 * widest + 6 * horizon * widest;
 
-        // Int8 layer inputs, quantized one layer at a time: the trunk's (the image included
-        // should the stem be int8) fit one activation buffer as two digit planes, with rows
-        // at most the image's pixels; the U-Net's are at most `horizon` rows of an up
+        // Int8 layer inputs, quantized one layer at a time: the trunk's fit one activation
+        // buffer as two digit planes; the U-Net's are at most `horizon` rows of an up
         // block's concatenated input (or the sample, the first block's), as i16 codes
-        // padded to whole quads.
+        // padded to whole quads; an int8 stem's patches go a band of output rows at a
+        // time (at least one row).
         let unet_codes = 2 * horizon * 4 * max(2 * widest, action_dim).div_ceil(4);
-        let quantized = aligned(max(2 * trunk_activation, unet_codes).div_ceil(4));
+        let stem_patch_row = 2 * stem_width as u64 * frame::PATCH_CHANNELS as u64;
+        let quantized_bytes = max(max(2 * trunk_activation, unet_codes), stem_patch_row);
+        let quantized = aligned(quantized_bytes.div_ceil(4));
         let persistent = features
             + states
             + anchors

@@ -226,7 +226,7 @@ impl<'w, 'a> Policy<'w, 'a> {
         let first_observation = !self.has_observation;
         let buffers = self.buffers();
         let (first, rest) = buffers.scratch.split_at_mut(plan.trunk_activation);
-        frame::preprocess(&config, image, first)?;
+        frame::check_size(&config, image)?;
         let mut store = FrameStore::new(
             &mut buffers.features[slot * frame_len..][..frame_len],
             &plan.frame,
@@ -237,7 +237,14 @@ impl<'w, 'a> Policy<'w, 'a> {
             activation_len: plan.trunk_activation,
             quantized: buffers.quantized,
         };
-        pyramid::encode(kernels, &config, &weights.pyramid, scratch, &mut store);
+        pyramid::encode(
+            kernels,
+            &config,
+            &weights.pyramid,
+            image,
+            scratch,
+            &mut store,
+        );
         buffers.states[slot * state_dim..][..state_dim].copy_from_slice(state);
         if first_observation {
             for other in 1..frames {

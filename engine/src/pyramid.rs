@@ -2,12 +2,16 @@
 //! F1..F5 (SPEC section 2), once per frame.
 
 use crate::config::ModelConfig;
+use crate::frame::{self, PATCH_CHANNELS, STEM_KERNEL, STEM_PADDING, STEM_STRIDE};
 use crate::kernels::ops::{self, Activation};
-use crate::kernels::{self, Accumulate, Activations, ConvShape, Kernels, QuantizeScratch};
+use crate::kernels::{
+    self, Accumulate, Activations, ConvShape, DigitRows, Kernels, QuantizeScratch,
+};
 use crate::plan::FrameLayout;
-use crate::weights::{Conv, ConvNorm, PyramidWeights};
+use crate::weights::{Conv, ConvNorm, PyramidWeights, Weight};
 
-/// Four activation buffers the residual blocks rotate through; the first holds the image.
+/// Four activation buffers the residual blocks rotate through; the first holds the image
+/// (normalized, or as padded digit planes for an int8 stem).
 pub struct TrunkScratch<'a> {
     pub first: &'a mut [f32],
     /// The stem's output lives here first; afterwards it is split into the other three.
@@ -38,6 +42,17 @@ fn conv_norm(
         Accumulate::Overwrite,
         Activations::Digits(quantized),
     );
+    normalize(kernels, layer, shape, output, activation);
+}
+
+/// The norm and activation of [`conv_norm`], on the convolution's output in `output`.
+fn normalize(
+    kernels: &dyn Kernels,
+    layer: &ConvNorm<'_>,
+    shape: &ConvShape,
+    output: &mut [f32],
+    activation: Activation,
+) {
     let output = &mut output[..shape.output_len()];
     match &layer.norm {
         Some(norm) => kernels.group_norm(
@@ -197,26 +212,98 @@ fn projection_shape(config: &ModelConfig, level: usize) -> ConvShape {
     )
 }
 
-/// Encodes a preprocessed image (already in `scratch.first`) into `frame`: the five
-/// projected maps, except that a level projected on demand keeps its input instead.
+/// The stem's convolution, norm and ReLU: `image` (RGB bytes) -> `output`.
+///
+/// With int8 weights and no ImageNet normalization the image bytes are the input codes
+/// exactly (scale `1 / 255`): the stem runs as a 1x1 int8 convolution over its patches
+/// ([`frame::PATCH_CHANNELS`] bytes a pixel), a band of output rows at a time in the
+/// quantization buffer, so its 7x7 kernel over three channels reads 49 quads in one run
+/// instead of one quad a tap. It gives exactly what the 7x7 int8 convolution gives on the
+/// same codes. Otherwise the image is normalized to f32 in `image_buffer` and convolved as
+/// any layer.
+pub fn stem(
+    kernels: &dyn Kernels,
+    config: &ModelConfig,
+    layer: &ConvNorm<'_>,
+    image: &[u8],
+    (image_buffer, output): (&mut [f32], &mut [f32]),
+    quantized: &mut QuantizeScratch<'_>,
+) {
+    let image_shape = (config.image_height as usize, config.image_width as usize, 3);
+    let channels = config.stage_channels(0);
+    let shape = ConvShape::square(
+        image_shape,
+        channels,
+        STEM_KERNEL,
+        STEM_STRIDE,
+        STEM_PADDING,
+    );
+    let (values, scales) = match layer.conv.weight {
+        Weight::Int8 { values, scales } if !config.imagenet_norm => (values, scales),
+        _ => {
+            frame::normalize(config, image, image_buffer);
+            let activation = Activation::Relu;
+            return conv_norm(
+                kernels,
+                layer,
+                &shape,
+                image_buffer,
+                output,
+                activation,
+                quantized,
+            );
+        }
+    };
+    let (high_image, low_image) =
+        frame::pad_digits(config, image, bytemuck::cast_slice_mut(image_buffer));
+    let (out_height, out_width) = (shape.out_height(), shape.out_width());
+    // The plan makes room for at least one row of patches.
+    let band_rows =
+        (quantized.values.len() / (2 * out_width * PATCH_CHANNELS)).clamp(1, out_height);
+    for first_row in (0..out_height).step_by(band_rows) {
+        let rows = band_rows.min(out_height - first_row);
+        let band = ConvShape::square((rows, out_width, PATCH_CHANNELS), channels, 1, 1, 0);
+        let (high, low) = quantized.values[..2 * band.input_len()].split_at_mut(band.input_len());
+        let band_rows_range = first_row..first_row + rows;
+        frame::patch_rows(config, high_image, band_rows_range.clone(), high);
+        frame::patch_rows(config, low_image, band_rows_range, low);
+        let digits = DigitRows {
+            high,
+            low,
+            scale: 1.0 / 255.0,
+            nonnegative: true,
+        };
+        kernels.conv_int8(
+            &band,
+            &digits,
+            values,
+            scales,
+            layer.conv.bias,
+            &mut output[first_row * out_width * channels..][..band.output_len()],
+            Accumulate::Overwrite,
+        );
+    }
+    normalize(kernels, layer, &shape, output, Activation::Relu);
+}
+
+/// Encodes `image` (RGB bytes of the config's size) into `frame`: the five projected maps,
+/// except that a level projected on demand keeps its input instead.
 pub fn encode(
     kernels: &dyn Kernels,
     config: &ModelConfig,
     weights: &PyramidWeights<'_>,
+    image: &[u8],
     mut scratch: TrunkScratch<'_>,
     frame: &mut FrameStore<'_>,
 ) {
     let stem_channels = config.stage_channels(0);
-    let image = (config.image_height as usize, config.image_width as usize, 3);
-    let stem_shape = ConvShape::square(image, stem_channels, 7, 2, 3);
     let (stem_height, stem_width) = config.stem_size();
-    conv_norm(
+    stem(
         kernels,
+        config,
         &weights.stem,
-        &stem_shape,
-        scratch.first,
-        scratch.rest,
-        Activation::Relu,
+        image,
+        (&mut *scratch.first, &mut *scratch.rest),
         &mut scratch.quantized,
     );
     let (height, width) = config.pyramid_size(0);

@@ -1,12 +1,14 @@
 //! The AMX backend runs the int8 convolutions on its tiles only for the shapes they take
 //! (`Amx::covers`); any other shape goes, silently and correctly, to the AVX-512 kernels.
-//! The speed of the trunk rests on every int8 layer of the product models being taken:
+//! The speed of the trunk rests on every int8 layer of the product models but the stem
+//! being taken:
 //! this encodes a frame of metaworld and panda through a kernel wrapper that records
 //! every dense int8 convolution it is asked for, and checks each one against `covers`.
 #![cfg(target_arch = "x86_64")]
 
 use std::sync::Mutex;
 
+use scdp_engine::frame::PATCH_CHANNELS;
 use scdp_engine::kernels::x86_64::amx::Amx;
 use scdp_engine::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels, scalar::Scalar};
 use scdp_engine::{ArenaPlan, Model, ModelConfig, Policy};
@@ -140,9 +142,24 @@ fn amx_tiles_take_every_dense_int8_convolution_of_the_product_models() {
         ("metaworld", ModelConfig::METAWORLD),
         ("panda", ModelConfig::PANDA),
     ] {
-        let calls = dense_int8_convolutions_of_one_frame(config);
-        // ResNet-18's 19 int8 convolutions (16 3x3, three 1x1 downsamples) and the dense
-        // projections (the others run per cell, during inference).
+        let (stem, calls): (Vec<_>, Vec<_>) = dense_int8_convolutions_of_one_frame(config)
+            .into_iter()
+            .partition(|(shape, _)| shape.in_channels == PATCH_CHANNELS);
+        // The stem: 1x1 convolutions over its patches, a band of output rows each, all of
+        // them together one output row per stem row. Their 196 inputs are not whole 64-byte
+        // tile rows: the AVX-512 VNNI kernel runs them.
+        let (stem_height, stem_width) = config.stem_size();
+        let stem_rows: usize = stem.iter().map(|(shape, _)| shape.in_height).sum();
+        assert_eq!(stem_rows, stem_height, "{name}");
+        for (shape, _) in &stem {
+            assert_eq!(
+                (shape.kernel_height, shape.in_width),
+                (1, stem_width),
+                "{name}"
+            );
+        }
+        // ResNet-18's other 19 int8 convolutions (16 3x3, three 1x1 downsamples) and the
+        // dense projections (the others run per cell, during inference).
         let dense_projections = (0..5)
             .filter(|&level| !config.projection_on_demand(level))
             .count();

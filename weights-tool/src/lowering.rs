@@ -574,16 +574,28 @@ impl StateDictLookup for crate::state_dict::StateDict {
 
 /// Weights the int8 mode still stores in f32, and why (measured with
 /// `cargo test -p scdp-tests --test int8_fidelity -- --nocapture`; see docs/QUANTIZATION.md).
-pub const INT8_KEEP_F32: &[(&str, &str)] = &[
-    (
-        "backbone.conv1.weight",
-        "the stem reads the raw image: 9k weights, and its error would reach every feature",
-    ),
-    (
-        "unet.final.projection.weight",
-        "the predicted noise itself: 1k weights, its error goes straight into every DDIM step",
-    ),
-];
+pub const INT8_KEEP_F32: &[(&str, &str)] = &[(
+    "unet.final.projection.weight",
+    "the predicted noise itself: 1k weights, its error goes straight into every DDIM step",
+)];
+
+/// The stem convolution's kernel.
+pub const STEM_WEIGHT: &str = "backbone.conv1.weight";
+
+/// Why the stem stays f32 with ImageNet normalization: its int8 form reads the image bytes
+/// as codes, exact only when a zero byte is the network's zero (the padding).
+pub const STEM_KEPT_F32: &str =
+    "ImageNet normalization: the int8 stem reads the raw bytes, whose zero is not the padding's";
+
+/// The weights `config`'s int8 files keep in f32, and why: [`INT8_KEEP_F32`], and the
+/// stem when the config normalizes images.
+pub fn int8_kept_f32(config: &ModelConfig) -> Vec<(&'static str, &'static str)> {
+    let mut kept = INT8_KEEP_F32.to_vec();
+    if config.imagenet_norm {
+        kept.push((STEM_WEIGHT, STEM_KEPT_F32));
+    }
+    kept
+}
 
 /// Symmetric int8 with one scale per channel: `scale = max |w| / 127` over the channel,
 /// `q = round(w / scale)`. Channels are the last axis (convolutions, `[.., out]`) or, with
@@ -635,15 +647,16 @@ pub enum Rounding<'m> {
 pub const GPTQ_DAMPING: f64 = 0.01;
 
 /// Chooses each tensor's storage: everything f32, or int8 for every weight the engine can
-/// take as int8 except [`INT8_KEEP_F32`].
+/// take as int8 except [`int8_kept_f32`].
 pub fn store(
     config: &ModelConfig,
     lowered: Lowered,
     quant: Quant,
     rounding: Rounding<'_>,
 ) -> Result<BTreeMap<String, Stored>> {
+    let kept = int8_kept_f32(config);
     store_keeping(config, lowered, quant, rounding, |name| {
-        INT8_KEEP_F32.iter().any(|(kept, _)| *kept == name)
+        kept.iter().any(|(kept, _)| *kept == name)
     })
 }
 

@@ -267,7 +267,7 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
                 weights_tool::lowering::GPTQ_DAMPING
             );
         }
-        for (name, why) in weights_tool::lowering::INT8_KEEP_F32 {
+        for (name, why) in weights_tool::lowering::int8_kept_f32(&config) {
             println!("  kept f32       {name}: {why}");
         }
     }
