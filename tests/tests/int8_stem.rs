@@ -12,21 +12,9 @@ use scdp_engine::kernels::{
     Accumulate, ConvShape, DigitRows, Kernels, QuantizeScratch, int8_quad_index,
 };
 use scdp_engine::pyramid;
+use scdp_engine::rng::NoiseRng;
 use scdp_engine::weights::{Conv, ConvNorm, Norm, Weight};
 use scdp_tests::available_backends;
-
-/// A small deterministic generator (the values only need to be varied and repeatable).
-struct Lcg(u64);
-
-impl Lcg {
-    fn next(&mut self) -> u32 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (self.0 >> 33) as u32
-    }
-}
 
 #[test]
 fn int8_stem_over_patches_equals_the_7x7_convolution() {
@@ -47,14 +35,15 @@ fn int8_stem_over_patches_equals_the_7x7_convolution() {
         STEM_STRIDE,
         STEM_PADDING,
     );
-    let mut random = Lcg(7);
+    // The engine's own generator: the values only need to be varied and repeatable.
+    let mut random = NoiseRng::new(7);
     // Every byte value, the extremes included, then random ones.
     let image: Vec<u8> = (0..height * width * 3)
         .map(|i| {
             if i < 256 {
                 i as u8
             } else {
-                random.next() as u8
+                random.next_u64() as u8
             }
         })
         .collect();
@@ -68,16 +57,16 @@ fn int8_stem_over_patches_equals_the_7x7_convolution() {
                 let value = match (tap + input + output) % 17 {
                     0 => -128,
                     1 => 127,
-                    _ => random.next() as i8,
+                    _ => random.next_u64() as i8,
                 };
                 weight[int8_quad_index(3, channels, tap, input, output)] = value;
             }
         }
     }
     let scales: Vec<f32> = (0..channels)
-        .map(|_| 1e-3 * (1.0 + (random.next() % 1000) as f32 / 100.0))
+        .map(|_| 1e-3 * (1.0 + (random.next_u64() % 1000) as f32 / 100.0))
         .collect();
-    let signed = |random: &mut Lcg| (random.next() % 2001) as f32 / 1000.0 - 1.0;
+    let signed = |random: &mut NoiseRng| (random.next_u64() % 2001) as f32 / 1000.0 - 1.0;
     let bias: Vec<f32> = (0..channels).map(|_| signed(&mut random)).collect();
     let gamma: Vec<f32> = (0..channels).map(|_| 1.0 + signed(&mut random)).collect();
     let beta: Vec<f32> = (0..channels).map(|_| signed(&mut random)).collect();
