@@ -1107,12 +1107,12 @@ fn int8_convolution_is_bit_identical_on_every_backend() {
     }
 }
 
-/// The shapes the AMX tiles take (input channels a multiple of 64 up to 512, output
-/// channels a multiple of 32), over the cases they treat differently: activation tiles
-/// loaded in place (rows equally spaced: inside a map, strides 1 and 2, 1x1 kernels over
-/// whole maps) or gathered (padding, tiles wrapping onto the next output row, the short
-/// last tile of a map, maps smaller than a tile), pixel groups of one and several blocks,
-/// both accumulation modes. Bit for bit against the scalar reference on every backend.
+/// The shapes the AMX tiles take (whole input-channel quads up to 512, output channels a
+/// multiple of 32), over the cases they treat differently: activation tiles loaded in place
+/// (rows equally spaced: inside a map, strides 1 and 2, 1x1 kernels over whole maps) or
+/// gathered (padding, tiles wrapping onto the next output row, the short last tile of a map,
+/// maps smaller than a tile, a last 64-channel step only partly filled: 196 is the stem's
+/// patches), pixel groups of one and several blocks, both accumulation modes. Bit for bit against the scalar reference on every backend.
 #[test]
 fn int8_convolution_on_matrix_tiles_is_bit_identical() {
     let mut rng = Lcg(31);
@@ -1130,7 +1130,7 @@ fn int8_convolution_on_matrix_tiles_is_bit_identical() {
         let kernel = [1, 3][case % 2];
         let stride = 1 + (case / 2) % 2;
         let padding = if kernel == 3 { (case / 4) % 2 } else { 0 };
-        let in_channels = [64, 128, 256, 512][(case / 3) % 4];
+        let in_channels = [64, 128, 256, 512, 196, 4, 100][(case / 3) % 7];
         let out_channels = [32, 64, 96][case % 3];
         let (height, width) = maps[case % maps.len()];
         if height.min(width) + 2 * padding < kernel {
@@ -1236,7 +1236,15 @@ fn int8_convolution_is_exact_at_the_extremes() {
 /// exact sum.
 #[test]
 fn int8_convolution_is_exact_over_the_whole_kernel() {
-    let in_channels = 512;
+    // 512 channels: 4,608 products, past what i32 holds (the sums combine in f64); 112: 1,008
+    // products, just inside (AMX combines them in i32, up to 2.11e9 here, and its last
+    // 64-channel step is partial).
+    for in_channels in [512, 112] {
+        whole_kernel_sums_are_exact(in_channels);
+    }
+}
+
+fn whole_kernel_sums_are_exact(in_channels: usize) {
     let out_channels = 32;
     let shape = ConvShape::square((6, 7, in_channels), out_channels, 3, 1, 1);
     for weight_value in [i8::MAX, i8::MIN] {

@@ -1,7 +1,7 @@
 //! The AMX backend runs the int8 convolutions on its tiles only for the shapes they take
 //! (`Amx::covers`); any other shape goes, silently and correctly, to the AVX-512 kernels.
-//! The speed of the trunk rests on every int8 layer of the product models but the stem
-//! being taken:
+//! The speed of the trunk rests on every int8 layer of the product models being taken
+//! (the stem's patch bands included):
 //! this encodes a frame of metaworld and panda through a kernel wrapper that records
 //! every dense int8 convolution it is asked for, and checks each one against `covers`.
 #![cfg(target_arch = "x86_64")]
@@ -142,12 +142,12 @@ fn amx_tiles_take_every_dense_int8_convolution_of_the_product_models() {
         ("metaworld", ModelConfig::METAWORLD),
         ("panda", ModelConfig::PANDA),
     ] {
-        let (stem, calls): (Vec<_>, Vec<_>) = dense_int8_convolutions_of_one_frame(config)
-            .into_iter()
+        let calls = dense_int8_convolutions_of_one_frame(config);
+        let (stem, others): (Vec<_>, Vec<_>) = calls
+            .iter()
             .partition(|(shape, _)| shape.in_channels == PATCH_CHANNELS);
         // The stem: 1x1 convolutions over its patches, a band of output rows each, all of
-        // them together one output row per stem row. Their 196 inputs are not whole 64-byte
-        // tile rows: the AVX-512 VNNI kernel runs them.
+        // them together one output row per stem row.
         let (stem_height, stem_width) = config.stem_size();
         let stem_rows: usize = stem.iter().map(|(shape, _)| shape.in_height).sum();
         assert_eq!(stem_rows, stem_height, "{name}");
@@ -163,8 +163,8 @@ fn amx_tiles_take_every_dense_int8_convolution_of_the_product_models() {
         let dense_projections = (0..5)
             .filter(|&level| !config.projection_on_demand(level))
             .count();
-        assert_eq!(calls.len(), 19 + dense_projections, "{name}");
-        for (shape, covered) in calls {
+        assert_eq!(others.len(), 19 + dense_projections, "{name}");
+        for &(shape, covered) in &calls {
             assert!(covered, "{name}: the AMX tiles do not take {shape:?}");
         }
     }

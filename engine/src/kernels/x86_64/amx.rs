@@ -20,22 +20,28 @@
 //! equally spaced (`tileloadd` takes a row stride: the inside of a map, stride 1 or 2);
 //! otherwise (padding, a tile wrapping onto the next output row, the short last tile) its
 //! rows are gathered into a scratch tile, zero where a pixel reads nothing (the padding's
-//! zero codes).
+//! zero codes). Input channels need only be whole quads: a last 64-channel step only
+//! partly filled (the stem's 196-byte patches: 3 x 64 + 4) is gathered with masked loads,
+//! zero past the last channel, against weight tiles whose rows past the last quad are
+//! zero.
 //!
 //! Linux hands out the tile registers on request only (`arch_prctl(ARCH_REQ_XCOMP_PERM)`);
 //! without an OS (`target_os = "none"`) the firmware that set XCR0 has enabled them.
 
 use core::arch::asm;
 use core::arch::x86_64::{
-    _mm512_add_ps, _mm512_load_si512, _mm512_loadu_ps, _mm512_loadu_si512, _mm512_mul_ps,
-    _mm512_set1_ps, _mm512_setzero_si512, _mm512_store_si512, _mm512_storeu_ps,
+    _mm512_add_epi32, _mm512_add_ps, _mm512_cvtepi32_ps, _mm512_load_si512, _mm512_loadu_ps,
+    _mm512_loadu_si512, _mm512_maskz_loadu_epi8, _mm512_mul_ps, _mm512_set1_ps,
+    _mm512_setzero_si512, _mm512_slli_epi32, _mm512_store_si512, _mm512_storeu_ps,
 };
 
 use super::avx512::Avx512;
 use super::int8::{PixelTile, exact_digits_zmm, round_zmm, tap_rows};
-use crate::kernels::ops::Activation;
+use crate::kernels::ops::{Activation, DIGIT_BASE};
 use crate::kernels::scalar::assert_int8_lengths;
-use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels, QUAD, int8_quad_index};
+use crate::kernels::{
+    Accumulate, CodeRows, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS, QUAD, int8_quad_index,
+};
 
 /// Rows of every tile: pixels of an activation tile, quads of a weight tile, pixels of a
 /// sum tile.
@@ -64,12 +70,13 @@ static INSTANCE: Amx = Amx {
 
 impl Amx {
     /// Whether [`Kernels::conv_int8`] runs on the tiles here: activations readable as u8,
-    /// whole 64-channel steps up to [`MAX_IN_CHANNELS`], whole 32-channel blocks (other
-    /// shapes go to [`Avx512`]). Every int8 layer of the model qualifies.
+    /// whole input-channel quads up to [`MAX_IN_CHANNELS`] (a last partial 64-channel step
+    /// is gathered, zero-padded), whole 32-channel blocks (other shapes go to [`Avx512`]).
+    /// Every int8 layer of the model qualifies, the stem's 196-byte patches included.
     pub fn covers(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
         input.nonnegative
-            && shape.in_channels.is_multiple_of(CHANNELS_PER_STEP)
-            && shape.in_channels <= MAX_IN_CHANNELS
+            && shape.in_channels.is_multiple_of(QUAD)
+            && step_channels(shape.in_channels) <= MAX_IN_CHANNELS
             && shape.out_channels.is_multiple_of(BLOCK_CHANNELS)
     }
 
@@ -186,6 +193,12 @@ struct TileBuffer([u8; ROWS * ROW_BYTES]);
 
 /// Input channels an activation tile row can hold at most (the widest ResNet-18 layer).
 const MAX_IN_CHANNELS: usize = 512;
+
+/// `in_channels` rounded up to whole 64-channel steps: what a tap's packed weights cover
+/// (the channels past `in_channels` with zero weights).
+const fn step_channels(in_channels: usize) -> usize {
+    in_channels.next_multiple_of(CHANNELS_PER_STEP)
+}
 /// Bytes of packed weights a run of taps takes at most: all nine taps of a 3x3 layer up to
 /// 128 input channels (36 KB, ResNet-18's layer1 and layer2), two taps of the widest.
 const RUN_BYTES: usize = 9 * 128 * BLOCK_CHANNELS;
@@ -215,6 +228,15 @@ fn line_source(
             shape.stride,
         )
     })
+}
+
+/// The 16 rows a direct source `(first row, row step)` reads, for a gathered tile.
+fn line_rows(first: usize, step: usize) -> [Option<usize>; BLOCK_PIXELS] {
+    let mut rows = [None; BLOCK_PIXELS];
+    for (pixel, row) in rows.iter_mut().enumerate() {
+        *row = Some(first + pixel * step);
+    }
+    rows
 }
 
 /// Where an activation tile comes from at one tap: straight from the input (first row and
@@ -249,9 +271,9 @@ type BlockSums = [TileBuffer; 4];
 /// once per tap.
 ///
 /// # Safety
-/// The CPU supports AVX-512F, AMX-TILE and AMX-INT8 and this thread may use the tile
+/// The CPU supports AVX-512F/BW, AMX-TILE and AMX-INT8 and this thread may use the tile
 /// state; the slice lengths are those [`assert_int8_lengths`] checks; [`Amx::covers`] holds.
-#[target_feature(enable = "avx512f")]
+#[target_feature(enable = "avx512f,avx512bw")]
 unsafe fn conv(
     shape: &ConvShape,
     input: &DigitRows<'_>,
@@ -262,8 +284,9 @@ unsafe fn conv(
     let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
     let positions = shape.out_height() * shape.out_width();
     let taps = shape.kernel_height * shape.kernel_width;
-    let tap_bytes = in_channels * BLOCK_CHANNELS;
+    let tap_bytes = step_channels(in_channels) * BLOCK_CHANNELS;
     let run_taps = (RUN_BYTES / tap_bytes).min(taps);
+    let i32_exact = taps * in_channels <= MAX_DIGIT_CHANNELS;
     let mut packed = PackedRun([0; RUN_BYTES]);
     let mut gathered = [TileBuffer([0; ROWS * ROW_BYTES]); 2];
     let mut sums = [[TileBuffer([0; ROWS * ROW_BYTES]); 4]; GROUP_BLOCKS];
@@ -313,7 +336,7 @@ unsafe fn conv(
                 unsafe {
                     store(
                         &sums[block / BLOCK_PIXELS],
-                        count,
+                        (count, i32_exact),
                         input.scale,
                         parameters,
                         (out, out_channels),
@@ -341,7 +364,7 @@ unsafe fn pack_run(
     packed: &mut PackedRun,
 ) {
     let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
-    let tap_bytes = in_channels * BLOCK_CHANNELS;
+    let tap_bytes = step_channels(in_channels) * BLOCK_CHANNELS;
     for (index, tap) in run.enumerate() {
         let first_quad = int8_quad_index(in_channels, out_channels, tap, 0, channel);
         let to = &mut packed.0[index * tap_bytes..][..tap_bytes];
@@ -351,7 +374,8 @@ unsafe fn pack_run(
 }
 
 /// Copies one tap's quads of 32 channels (`weights` from quad 0 of the block's first
-/// channel) into tile order in `packed` (`in_channels * 32` bytes).
+/// channel) into tile order in `packed` (`step_channels(in_channels) * 32` bytes), zero
+/// quads past `in_channels`.
 ///
 /// # Safety
 /// AVX-512F; `weights` holds the tap's `in_channels / 4` quads of the block's channels,
@@ -359,7 +383,12 @@ unsafe fn pack_run(
 #[inline(always)]
 unsafe fn pack_tap(shape: &ConvShape, weights: &[i8], packed: &mut [u8]) {
     let quad_stride = shape.out_channels * QUAD;
-    for quad in 0..shape.in_channels / QUAD {
+    let quads = shape.in_channels / QUAD;
+    // A partial last step: its weight tiles' rows past the last quad stay zero.
+    if !quads.is_multiple_of(ROWS) {
+        packed.fill(0);
+    }
+    for quad in 0..quads {
         let (step, row) = (quad / ROWS, quad % ROWS);
         for tile in 0..2 {
             let from = quad * quad_stride + tile * SUM_COLUMNS * QUAD;
@@ -420,7 +449,7 @@ unsafe fn run_sums(
             );
         }
     }
-    let tap_bytes = in_channels * BLOCK_CHANNELS;
+    let tap_bytes = step_channels(in_channels) * BLOCK_CHANNELS;
     // A whole block on one output row: most taps read a line of the input.
     let line = (count == BLOCK_PIXELS && origins[0].0 == origins[BLOCK_PIXELS - 1].0)
         .then_some(origins[0]);
@@ -455,32 +484,40 @@ unsafe fn run_sums(
                     }
                 };
             }
-            let weights = packed.0[index * tap_bytes + 2 * step * ROWS * ROW_BYTES..]
-                [..2 * ROWS * ROW_BYTES]
-                .as_ptr();
+            let weights = &packed.0[index * tap_bytes + 2 * step * ROWS * ROW_BYTES..];
             // SAFETY: the activation sources cover 16 rows of 64 bytes at their strides
             // (direct rows are input rows; the gathered buffers are 16 x 64); the step's two
-            // weight tiles are the 2 KB of `packed` from `weights`.
-            unsafe {
-                asm!(
-                    "tileloadd tmm4, [{high} + {high_stride}]",
-                    "tileloadd tmm5, [{low} + {low_stride}]",
-                    "tileloadd tmm6, [{b0} + {sb}]",
-                    "tileloadd tmm7, [{b1} + {sb}]",
-                    "tdpbusd tmm0, tmm4, tmm6",
-                    "tdpbusd tmm1, tmm4, tmm7",
-                    "tdpbusd tmm2, tmm5, tmm6",
-                    "tdpbusd tmm3, tmm5, tmm7",
-                    high = in(reg) sources[0].0,
-                    high_stride = in(reg) sources[0].1,
-                    low = in(reg) sources[1].0,
-                    low_stride = in(reg) sources[1].1,
-                    b0 = in(reg) weights,
-                    b1 = in(reg) weights.add(ROWS * ROW_BYTES),
-                    sb = in(reg) ROW_BYTES,
-                    options(nostack, readonly, preserves_flags)
-                );
+            // weight tiles are 2 KB of `packed`.
+            unsafe { multiply_step(sources, weights[..2 * ROWS * ROW_BYTES].as_ptr()) };
+        }
+        // A last step only partly filled (the stem's patches: 196 = 3 x 64 + 4): its rows
+        // are gathered, zero past the last channel, direct or not.
+        let width = in_channels % CHANNELS_PER_STEP;
+        if width != 0 {
+            let first_channel = in_channels - width;
+            let direct_rows;
+            let rows = match direct {
+                Some((row, row_step)) => {
+                    direct_rows = line_rows(row, row_step);
+                    &direct_rows
+                }
+                None => &rows,
+            };
+            let mut sources = [(core::ptr::null::<i8>(), 0usize); 2];
+            for (digit, plane) in planes.iter().enumerate() {
+                let buffer = &mut gathered[digit];
+                let channels = (in_channels, first_channel, width);
+                // SAFETY: AVX-512F/BW (`Amx::detect`); each `Some` row holds `in_channels`
+                // values (a direct source's 16 rows are inside the input), so the step's
+                // `width` from `first_channel` are readable; the buffer holds 16 rows of 64.
+                unsafe { gather_partial(plane, channels, rows, buffer) };
+                sources[digit] = (buffer.0.as_ptr().cast::<i8>(), ROW_BYTES);
             }
+            let step = in_channels / CHANNELS_PER_STEP;
+            let weights = &packed.0[index * tap_bytes + 2 * step * ROWS * ROW_BYTES..];
+            // SAFETY: the gathered buffers are 16 x 64; the step's two weight tiles are 2 KB
+            // of `packed` (a tap's packed weights cover `step_channels(in_channels)`).
+            unsafe { multiply_step(sources, weights[..2 * ROWS * ROW_BYTES].as_ptr()) };
         }
     }
     // SAFETY: each buffer is 16 rows of 64 bytes.
@@ -496,6 +533,38 @@ unsafe fn run_sums(
             s3 = in(reg) pointers[3],
             stride = in(reg) ROW_BYTES,
             options(nostack, preserves_flags)
+        );
+    }
+}
+
+/// One 64-channel step of a block: both digit planes' activation tiles (`sources`: first
+/// row and row stride in bytes) times the step's two weight tiles (`weights`, 2 KB), added
+/// to the four sum tiles.
+///
+/// # Safety
+/// Tiles configured as [`TILE_CONFIG`] says, the sums in `tmm0`-`tmm3`; each source covers
+/// 16 rows of 64 bytes at its stride; `weights` covers 2 KB.
+#[inline(always)]
+unsafe fn multiply_step(sources: [(*const i8, usize); 2], weights: *const u8) {
+    // SAFETY: the caller's promises.
+    unsafe {
+        asm!(
+            "tileloadd tmm4, [{high} + {high_stride}]",
+            "tileloadd tmm5, [{low} + {low_stride}]",
+            "tileloadd tmm6, [{b0} + {sb}]",
+            "tileloadd tmm7, [{b1} + {sb}]",
+            "tdpbusd tmm0, tmm4, tmm6",
+            "tdpbusd tmm1, tmm4, tmm7",
+            "tdpbusd tmm2, tmm5, tmm6",
+            "tdpbusd tmm3, tmm5, tmm7",
+            high = in(reg) sources[0].0,
+            high_stride = in(reg) sources[0].1,
+            low = in(reg) sources[1].0,
+            low_stride = in(reg) sources[1].1,
+            b0 = in(reg) weights,
+            b1 = in(reg) weights.add(ROWS * ROW_BYTES),
+            sb = in(reg) ROW_BYTES,
+            options(nostack, readonly, preserves_flags)
         );
     }
 }
@@ -525,8 +594,40 @@ unsafe fn gather(
     }
 }
 
+/// [`gather`] for a last step of `width` (< 64) channels: the rest of each buffer row zero.
+///
+/// # Safety
+/// AVX-512F/BW; each `Some` row has `in_channels` values in `values`, `step + width` of
+/// them.
+#[inline(always)]
+unsafe fn gather_partial(
+    values: &[i8],
+    (in_channels, step, width): (usize, usize, usize),
+    rows: &[Option<usize>],
+    buffer: &mut TileBuffer,
+) {
+    // Masked bytes are neither read nor able to fault.
+    let mask = u64::MAX >> (ROW_BYTES - width);
+    for (pixel, row) in rows.iter().enumerate() {
+        // SAFETY: the caller's promise for the row; the buffer row is 64 aligned bytes.
+        unsafe {
+            let bytes = match row {
+                Some(row) => {
+                    let from = &values[row * in_channels + step..][..width];
+                    _mm512_maskz_loadu_epi8(mask, from.as_ptr())
+                }
+                None => _mm512_setzero_si512(),
+            };
+            _mm512_store_si512(buffer.0[pixel * ROW_BYTES..].as_mut_ptr().cast(), bytes);
+        }
+    }
+}
+
 /// `out (+)= round(128 high + low) * scale * weight_scales + bias` for the block's `count`
 /// pixels, `stride` apart in `out`, each a product then a sum as the scalar reference does.
+/// `128 high + low` is formed exactly in i32 when the kernel has at most
+/// [`MAX_DIGIT_CHANNELS`] products (`i32_exact`: one tap's bound, `|code| <= 16383`,
+/// `|q_w| <= 128`), else in f64; its conversion to f32 rounds to nearest either way.
 ///
 /// # Safety
 /// AVX-512F; `weight_scales` and `bias` hold the block's 32 channels; `out` holds them for
@@ -534,7 +635,7 @@ unsafe fn gather(
 #[inline(always)]
 unsafe fn store(
     sums: &BlockSums,
-    count: usize,
+    (count, i32_exact): (usize, bool),
     scale: f32,
     (weight_scales, bias): (&[f32], &[f32]),
     (out, stride): (&mut [f32], usize),
@@ -551,7 +652,13 @@ unsafe fn store(
             unsafe {
                 let high = _mm512_load_si512(sums[vector].0[at..].as_ptr().cast());
                 let low = _mm512_load_si512(sums[2 + vector].0[at..].as_ptr().cast());
-                let rounded = round_zmm(exact_digits_zmm(high, low));
+                let rounded = if i32_exact {
+                    // The shift by 7 is the multiplication by the digit base.
+                    const { assert!(DIGIT_BASE == (1 << 7) as f32) };
+                    _mm512_cvtepi32_ps(_mm512_add_epi32(_mm512_slli_epi32::<7>(high), low))
+                } else {
+                    round_zmm(exact_digits_zmm(high, low))
+                };
                 let total = _mm512_mul_ps(rounded, _mm512_set1_ps(scale));
                 let weight_scale = _mm512_loadu_ps(weight_scales[channels..].as_ptr());
                 let scaled = _mm512_mul_ps(total, weight_scale);

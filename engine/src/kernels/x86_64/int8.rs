@@ -468,7 +468,8 @@ pub(crate) fn tap_rows<const P: usize>(
 
 /// Whether the SIMD int8 tiles apply: both digits readable as u8, and whole input-channel
 /// quads in each row (so a 4-byte activation load stays inside its pixel). The int8 layers
-/// of the model all qualify; the stem (3 channels, kept f32 by the tool) would not.
+/// of the model all qualify; the stem's 7x7 kernel over 3 channels would not, which is why it
+/// runs over patches (`pyramid::stem`).
 pub(crate) fn tiles_apply(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
     input.nonnegative && shape.in_channels.is_multiple_of(QUAD)
 }
