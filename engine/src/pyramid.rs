@@ -221,6 +221,9 @@ fn projection_shape(config: &ModelConfig, level: usize) -> ConvShape {
 /// instead of one quad a tap. It gives exactly what the 7x7 int8 convolution gives on the
 /// same codes. Otherwise the image is normalized to f32 in `image_buffer` and convolved as
 /// any layer.
+///
+/// # Panics
+/// If a buffer is shorter than the arena plan makes it (the policy's never are).
 pub fn stem(
     kernels: &dyn Kernels,
     config: &ModelConfig,
