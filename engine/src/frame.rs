@@ -43,13 +43,6 @@ pub const fn frame_bytes(config: &ModelConfig) -> usize {
     config.image_height as usize * config.image_width as usize * 3
 }
 
-/// Checks the frame's size; writes `H W 3` values to the front of `output`.
-pub fn preprocess(config: &ModelConfig, image: &[u8], output: &mut [f32]) -> Result<(), Error> {
-    check_size(config, image)?;
-    normalize(config, image, output);
-    Ok(())
-}
-
 /// Fails unless `image` is one RGB frame of `config`'s size.
 pub fn check_size(config: &ModelConfig, image: &[u8]) -> Result<(), Error> {
     let expected = frame_bytes(config);
@@ -62,7 +55,8 @@ pub fn check_size(config: &ModelConfig, image: &[u8]) -> Result<(), Error> {
     Ok(())
 }
 
-/// [`preprocess`] on an image of the right size.
+/// Writes the network input of `image` (of the right size, [`check_size`]), `H W 3`
+/// values, to the front of `output`.
 pub fn normalize(config: &ModelConfig, image: &[u8], output: &mut [f32]) {
     let (mean, std) = if config.imagenet_norm {
         (IMAGENET_MEAN, IMAGENET_STD)
