@@ -30,7 +30,7 @@ def checksum(data: bytes) -> int:
 def header(file_bytes: int, tensors: int) -> bytearray:
     out = bytearray(64)
     out[0:8] = b"SCDPWTS\0"
-    struct.pack_into("<IIQ", out, 8, 3, 64, file_bytes)
+    struct.pack_into("<IIQ", out, 8, 4, 64, file_bytes)
     struct.pack_into("<IIIII", out, 32, 64, 256, 320, tensors, 0)
     return out
 
@@ -109,7 +109,7 @@ def load_mutated_seeds():
         yield f"resize-{length}", bytes([1 | RUN]) + u32(length)
     yield "resize-stale-length", bytes([1 | 2]) + u32(MICRO_LEN - 64)
     yield "stale-checksum", bytes([4]) + edit(100_000, b"\x01")
-    yield "version-4", bytes([0]) + edit(8, u32(4))
+    yield "version-5", bytes([0]) + edit(8, u32(5))
     yield "header-bytes", bytes([0]) + edit(12, u32(65))
     yield "table-offset", bytes([0]) + edit(40, u32(64))
     yield "count-minus-one", bytes([0]) + edit(44, u32(194))

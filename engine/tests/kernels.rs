@@ -460,7 +460,7 @@ fn int8_convolution_sums_exactly_over_the_kernel_then_scales() {
         let stride = 1 + rng.below(2);
         let padding = rng.below(kernel / 2 + 1);
         let in_channels = 1 + rng.below(40);
-        let out_channels = 1 + rng.below(300); // crosses the kernel's 128-channel blocks
+        let out_channels = 1 + rng.below(300); // crosses the layout's 64-channel blocks
         let shape = ConvShape::square(
             (kernel + rng.below(5), kernel + rng.below(5), in_channels),
             out_channels,
@@ -615,7 +615,7 @@ fn int8_code_convolution_sums_exactly_over_the_kernel_then_scales() {
         let shape = ConvShape::sequence(
             length,
             1 + rng.below(70),
-            1 + rng.below(300), // crosses the reference's 128-channel blocks
+            1 + rng.below(300), // crosses the layout's 64-channel blocks
             kernel,
             stride,
             padding,
@@ -1523,4 +1523,64 @@ fn split_activation_digits_reconstruct_the_input() {
     let (mut high, mut low) = ([1i8; 2], [1i8; 2]);
     let (scale, _) = ops::quantize_split_signs(&[1.0, f32::NAN], &mut high, &mut low);
     assert!(scale.is_nan() && high == [0, 0] && low == [0, 0]);
+}
+
+/// The int8 kernel layout the tool writes and every backend reads: each weight has its own
+/// place inside the packed length, and within a block of 64 output channels a channel's
+/// next quad is `int8_quad_stride` further (what the SIMD tiles step by), its channels side
+/// by side. Output counts around the block width, including a narrow last block.
+#[test]
+fn int8_layout_places_every_weight_once_and_steps_quads_within_a_block() {
+    use scdp_engine::kernels::{INT8_CHANNEL_BLOCK, QUAD, int8_quad_index, int8_quad_stride};
+    for (taps, in_channels, out_channels) in [
+        (1usize, 4usize, 1usize),
+        (9, 3, 64),
+        (49, 3, 10),
+        (5, 13, 63),
+        (3, 8, 65),
+        (9, 20, 130),
+        (1, 196, 200),
+        (5, 12, 384),
+    ] {
+        let quads = in_channels.div_ceil(QUAD);
+        let len = taps * quads * QUAD * out_channels;
+        let mut seen = vec![false; len];
+        for tap in 0..taps {
+            for input in 0..quads * QUAD {
+                for output in 0..out_channels {
+                    let at = int8_quad_index(taps, in_channels, out_channels, (tap, input, output));
+                    assert!(
+                        at < len,
+                        "{taps} {in_channels} {out_channels}: {at} >= {len}"
+                    );
+                    assert!(
+                        !seen[at],
+                        "({tap}, {input}, {output}) lands on a used place"
+                    );
+                    seen[at] = true;
+                    let block_start = output / INT8_CHANNEL_BLOCK * INT8_CHANNEL_BLOCK;
+                    let width = (out_channels - block_start).min(INT8_CHANNEL_BLOCK);
+                    assert_eq!(int8_quad_stride(out_channels, output), width * QUAD);
+                    if input % QUAD == 0 && input + QUAD < quads * QUAD {
+                        let next = (tap, input + QUAD, output);
+                        let step = int8_quad_index(taps, in_channels, out_channels, next) - at;
+                        assert_eq!(
+                            step,
+                            width * QUAD,
+                            "quad step of ({tap}, {input}, {output})"
+                        );
+                    }
+                    if output > block_start {
+                        let previous = (tap, input, output - 1);
+                        let before = int8_quad_index(taps, in_channels, out_channels, previous);
+                        assert_eq!(at - before, QUAD, "channels of a block side by side");
+                    }
+                }
+            }
+        }
+        assert!(
+            seen.iter().all(|&s| s),
+            "{taps} {in_channels} {out_channels}: a gap"
+        );
+    }
 }

@@ -59,7 +59,12 @@ fn int8_stem_over_patches_equals_the_7x7_convolution() {
                     1 => 127,
                     _ => random.next_u64() as i8,
                 };
-                weight[int8_quad_index(3, channels, tap, input, output)] = value;
+                weight[int8_quad_index(
+                    STEM_KERNEL * STEM_KERNEL,
+                    3,
+                    channels,
+                    (tap, input, output),
+                )] = value;
             }
         }
     }

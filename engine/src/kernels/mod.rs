@@ -184,6 +184,16 @@ impl ConvShape {
             * QUAD
             * self.out_channels
     }
+
+    /// [`int8_quad_index`] of this convolution's `(tap, input, output)` weight.
+    pub const fn int8_index(&self, tap: usize, input: usize, output: usize) -> usize {
+        int8_quad_index(
+            self.kernel_height * self.kernel_width,
+            self.in_channels,
+            self.out_channels,
+            (tap, input, output),
+        )
+    }
 }
 
 /// Input channels grouped per output channel in the int8 kernels of 2-D convolutions.
@@ -194,19 +204,46 @@ pub const fn int8_quads(in_channels: usize) -> usize {
     in_channels.div_ceil(QUAD)
 }
 
-/// Where weight `(tap, input, output)` of a 2-D convolution lives in its int8 kernel: the
-/// layout `[kh, kw, ceil(in / 4), out, 4]` ("input-channel quads"). For each tap, quad and
-/// output channel, four consecutive input channels are adjacent, which is what the integer
-/// dot-product instructions (`vpdpbusd`, `vpmaddubsw`) multiply and add at once; 16 output
-/// channels of one quad are one 64-byte load.
+/// Output channels whose quads an int8 kernel stores together: a whole block (the last
+/// may be narrower) before the next, every tap and quad of it. A SIMD tile walks one block's
+/// taps and quads in address order, so its weights stream from contiguous memory and spread
+/// over every cache set; with the channels of a quad row side by side over all of
+/// `out_channels`, the rows a tile read were `4 out_channels` bytes apart, a power of two
+/// in ResNet, and crowded into a sixteenth of L1's and L2's sets.
+pub const INT8_CHANNEL_BLOCK: usize = 64;
+
+/// Where weight `(tap, input, output)` of a convolution of `taps` kernel taps lives in its
+/// int8 kernel: the layout `[ceil(out / 64), taps, ceil(in / 4), block, 4]` ("input-channel
+/// quads in blocks of output channels", `block` the width of the channel's
+/// [`INT8_CHANNEL_BLOCK`]). For each tap, quad and output channel, four consecutive input
+/// channels are adjacent, which is what the integer dot-product instructions (`vpdpbusd`,
+/// `vpmaddubsw`) multiply and add at once; 16 output channels of one quad are one 64-byte
+/// load, and a channel's next quad is [`int8_quad_stride`] bytes further.
 pub const fn int8_quad_index(
+    taps: usize,
     in_channels: usize,
     out_channels: usize,
-    tap: usize,
-    input: usize,
-    output: usize,
+    (tap, input, output): (usize, usize, usize),
 ) -> usize {
-    ((tap * int8_quads(in_channels) + input / QUAD) * out_channels + output) * QUAD + input % QUAD
+    let quads = int8_quads(in_channels);
+    let block_start = output / INT8_CHANNEL_BLOCK * INT8_CHANNEL_BLOCK;
+    let width = int8_quad_stride(out_channels, output) / QUAD;
+    block_start * taps * quads * QUAD
+        + ((tap * quads + input / QUAD) * width + output - block_start) * QUAD
+        + input % QUAD
+}
+
+/// Bytes from a quad of output channel `output` to its next quad in the int8 layout of
+/// [`int8_quad_index`]: four times the width of the channel's block.
+pub const fn int8_quad_stride(out_channels: usize, output: usize) -> usize {
+    let block_start = output / INT8_CHANNEL_BLOCK * INT8_CHANNEL_BLOCK;
+    let rest = out_channels - block_start;
+    let width = if rest < INT8_CHANNEL_BLOCK {
+        rest
+    } else {
+        INT8_CHANNEL_BLOCK
+    };
+    width * QUAD
 }
 
 /// An int8 tensor's dims read as a convolution kernel: `[kh, kw, in, out]` (2-D) or
@@ -248,7 +285,7 @@ pub fn pack_int8_quads(weight: &[i8], in_channels: usize, out_channels: usize, p
     for tap in 0..taps {
         for input in 0..in_channels {
             for output in 0..out_channels {
-                packed[int8_quad_index(in_channels, out_channels, tap, input, output)] =
+                packed[int8_quad_index(taps, in_channels, out_channels, (tap, input, output))] =
                     weight[(tap * in_channels + input) * out_channels + output];
             }
         }

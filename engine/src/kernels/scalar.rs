@@ -2,12 +2,13 @@
 //! implementations are tested against it.
 
 use super::{
-    Accumulate, CodeRows, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS, MAX_DIGIT_TERMS, QUAD,
-    int8_quad_index, ops,
+    Accumulate, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, Kernels, MAX_DIGIT_CHANNELS,
+    MAX_DIGIT_TERMS, QUAD, ops,
 };
 
-/// Output channels accumulated at once in the int8 kernels (an i32 block on the stack).
-const INT8_BLOCK: usize = 128;
+/// Output channels accumulated at once in the int8 kernels (an i32 block on the stack): at
+/// most one block of the weight layout, whose quads are contiguous per input quad.
+const INT8_BLOCK: usize = INT8_CHANNEL_BLOCK;
 
 /// The kernel taps of output pixel `(out_y, out_x)` that read inside the input (padding
 /// taps contribute zero and are skipped): the input pixel's index and the tap's index
@@ -235,8 +236,10 @@ pub(crate) fn conv_int8_pixel(
     (out_y, out_x): (usize, usize),
     channels: core::ops::Range<usize>,
 ) {
-    for block in channels.clone().step_by(INT8_BLOCK) {
-        let width = (channels.end - block).min(INT8_BLOCK);
+    let mut block = channels.start;
+    while block < channels.end {
+        // Up to the end of the layout block that holds `block`.
+        let width = (channels.end - block).min(INT8_BLOCK - block % INT8_BLOCK);
         let mut sums = [0i64; INT8_BLOCK];
         for (row, tap) in taps_inside(shape, out_y, out_x) {
             let tap_sums = input.code_sums(shape, weight, (row, tap), block, width);
@@ -254,6 +257,7 @@ pub(crate) fn conv_int8_pixel(
             channels,
             accumulate,
         );
+        block += width;
     }
 }
 
@@ -308,12 +312,12 @@ impl CodeSums for CodeRows<'_> {
         block: usize,
         width: usize,
     ) -> [i32; INT8_BLOCK] {
-        let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+        let in_channels = shape.in_channels;
         let row_stride = CodeRows::row_stride(in_channels);
         let codes = &self.codes[row * row_stride..][..row_stride];
         let mut sums = [0i32; INT8_BLOCK];
         for (quad, codes) in codes.chunks_exact(QUAD).enumerate() {
-            let first = int8_quad_index(in_channels, out_channels, tap, quad * QUAD, block);
+            let first = shape.int8_index(tap, quad * QUAD, block);
             let weights = &weight[first..][..width * QUAD];
             for (sum, weights) in sums.iter_mut().zip(weights.chunks_exact(QUAD)) {
                 // |code| <= 16383 and |q_w| <= 128: each product and the sum of up to
@@ -346,7 +350,7 @@ fn digit_sums(
     block: usize,
     width: usize,
 ) -> [i32; INT8_BLOCK] {
-    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+    let in_channels = shape.in_channels;
     let pixel = &plane[row * in_channels..][..in_channels];
     // One partial sum per weight of a quad row, added up per output channel after the last
     // quad: the inner loop then runs over contiguous weights, which the compiler vectorizes
@@ -360,7 +364,7 @@ fn digit_sums(
             .iter_mut()
             .zip(values)
             .for_each(|(v, &q)| *v = q as i16);
-        let first = int8_quad_index(in_channels, out_channels, tap, quad * QUAD, block);
+        let first = shape.int8_index(tap, quad * QUAD, block);
         let weights = &weight[first..][..width * QUAD];
         for (partial, w) in partials
             .chunks_exact_mut(QUAD)

@@ -40,7 +40,7 @@ use super::int8::{PixelTile, exact_digits_zmm, round_zmm, tap_rows};
 use crate::kernels::ops::{Activation, DIGIT_BASE};
 use crate::kernels::scalar::assert_int8_lengths;
 use crate::kernels::{
-    Accumulate, CodeRows, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS, QUAD, int8_quad_index,
+    Accumulate, CodeRows, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS, QUAD, int8_quad_stride,
 };
 
 /// Rows of every tile: pixels of an activation tile, quads of a weight tile, pixels of a
@@ -203,6 +203,8 @@ const fn step_channels(in_channels: usize) -> usize {
 /// 128 input channels (36 KB, ResNet-18's layer1 and layer2), two taps of the widest.
 const RUN_BYTES: usize = 9 * 128 * BLOCK_CHANNELS;
 const _: () = assert!(RUN_BYTES >= MAX_IN_CHANNELS * BLOCK_CHANNELS);
+// A block's quads are `quad_stride` apart only inside one block of the weight layout.
+const _: () = assert!(crate::kernels::INT8_CHANNEL_BLOCK.is_multiple_of(BLOCK_CHANNELS));
 /// Blocks of pixels whose sums are parked on the stack between runs of taps: the weights
 /// of a run are packed once for all of them.
 const GROUP_BLOCKS: usize = 8;
@@ -363,13 +365,13 @@ unsafe fn pack_run(
     (channel, run): (usize, core::ops::Range<usize>),
     packed: &mut PackedRun,
 ) {
-    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
-    let tap_bytes = step_channels(in_channels) * BLOCK_CHANNELS;
+    let tap_bytes = step_channels(shape.in_channels) * BLOCK_CHANNELS;
+    let quad_stride = int8_quad_stride(shape.out_channels, channel);
     for (index, tap) in run.enumerate() {
-        let first_quad = int8_quad_index(in_channels, out_channels, tap, 0, channel);
+        let first_quad = shape.int8_index(tap, 0, channel);
         let to = &mut packed.0[index * tap_bytes..][..tap_bytes];
         // SAFETY: the caller's promises.
-        unsafe { pack_tap(shape, &weight[first_quad..], to) };
+        unsafe { pack_tap(shape, (&weight[first_quad..], quad_stride), to) };
     }
 }
 
@@ -379,10 +381,9 @@ unsafe fn pack_run(
 ///
 /// # Safety
 /// AVX-512F; `weights` holds the tap's `in_channels / 4` quads of the block's channels,
-/// `4 out_channels` bytes apart.
+/// `quad_stride` bytes apart.
 #[inline(always)]
-unsafe fn pack_tap(shape: &ConvShape, weights: &[i8], packed: &mut [u8]) {
-    let quad_stride = shape.out_channels * QUAD;
+unsafe fn pack_tap(shape: &ConvShape, (weights, quad_stride): (&[i8], usize), packed: &mut [u8]) {
     let quads = shape.in_channels / QUAD;
     // A partial last step: its weight tiles' rows past the last quad stay zero.
     if !quads.is_multiple_of(ROWS) {

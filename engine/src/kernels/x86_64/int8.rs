@@ -16,7 +16,10 @@
 //!
 //! Channel blocks are the outer loop and pixel tiles the inner one, so a block's weights
 //! (up to 295 KB, ResNet layer4 at 64 channels) stay in the L2 cache while every pixel
-//! reads them; the other order streamed the whole kernel from L3 once per pixel tile.
+//! reads them; the other order streamed the whole kernel from L3 once per pixel tile. The
+//! weight layout keeps each 64-channel block's quads in one stretch, in the order a tile
+//! reads them ([`int8_quad_index`](crate::kernels::int8_quad_index)), so they spread over
+//! every cache set.
 //!
 //! The unsigned-by-signed byte products need activations in 0..=127, which every trunk input
 //! is (a ReLU output); [`DigitRows::nonnegative`] says so, and any other input goes to the
@@ -54,7 +57,8 @@ use crate::kernels::scalar::{
     conv_int8_pixels,
 };
 use crate::kernels::{
-    Accumulate, CodeRows, ConvShape, DigitRows, MAX_DIGIT_CHANNELS, QUAD, int8_quad_index, ops,
+    Accumulate, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, MAX_DIGIT_CHANNELS, QUAD,
+    int8_quad_stride, ops,
 };
 
 /// An integer dot product over input-channel quads, `WIDTH` output channels a vector, and
@@ -481,20 +485,20 @@ pub(crate) fn tiles_apply(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
 /// # Safety
 /// The CPU supports `L`; each pointer in `activations` starts a row of `4 quads` readable
 /// bytes; `weights` points at quad 0 of the tap's first channel of the block, with `quads`
-/// quads of `out_channels` channels readable from there and `V WIDTH` channels in the block.
+/// quads, `quad_stride` bytes apart, of `V WIDTH` channels readable from there.
 #[inline(always)]
 unsafe fn add_digit_products<L: Int8Lanes, const P: usize, const V: usize>(
     mut sums: [[L::Integers; V]; P],
     activations: [*const i8; P],
     weights: *const i8,
     quads: usize,
-    out_channels: usize,
+    quad_stride: usize,
 ) -> [[L::Integers; V]; P] {
     for quad in 0..quads {
         // SAFETY: quad `quad` of the block's channels and of each row is inside what the
         // caller vouched for.
         unsafe {
-            let row = weights.add(quad * out_channels * QUAD);
+            let row = weights.add(quad * quad_stride);
             let vectors: [L::Integers; V] =
                 core::array::from_fn(|vector| L::load_weights(row.add(vector * L::WIDTH * QUAD)));
             for pixel in 0..P {
@@ -560,7 +564,8 @@ unsafe fn digit_sums<L: Int8Lanes, const P: usize, const V: usize>(
     pixels: &PixelTile<P>,
     channel: usize,
 ) -> [[[L::Integers; V]; P]; 2] {
-    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+    let in_channels = shape.in_channels;
+    let quad_stride = int8_quad_stride(shape.out_channels, channel);
     // SAFETY: the caller runs on `L`'s CPU.
     let mut sums = [[[unsafe { L::zero_integers() }; V]; P]; 2];
     for kernel_y in 0..shape.kernel_height {
@@ -573,16 +578,14 @@ unsafe fn digit_sums<L: Int8Lanes, const P: usize, const V: usize>(
                 continue;
             };
             let tap = kernel_y * shape.kernel_width + kernel_x;
-            let first = int8_quad_index(in_channels, out_channels, tap, 0, channel);
-            let weights = weight[first..].as_ptr();
+            let weights = weight[shape.int8_index(tap, 0, channel)..].as_ptr();
             let quads = in_channels / QUAD;
             // SAFETY: every source is an input row of `in_channels` = 4 quads values
             // (`tiles_apply`) or the zero row, as long; the tap's quads of the block's
             // channels are inside `weight` (the caller's promise).
             unsafe {
-                sums[0] =
-                    add_digit_products::<L, P, V>(sums[0], high, weights, quads, out_channels);
-                sums[1] = add_digit_products::<L, P, V>(sums[1], low, weights, quads, out_channels);
+                sums[0] = add_digit_products::<L, P, V>(sums[0], high, weights, quads, quad_stride);
+                sums[1] = add_digit_products::<L, P, V>(sums[1], low, weights, quads, quad_stride);
             }
         }
     }
@@ -633,9 +636,9 @@ impl TileInput for CodeRows<'_> {
         pixels: &PixelTile<P>,
         channel: usize,
     ) -> [[L::Floats; V]; P] {
-        let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
-        let row_stride = CodeRows::row_stride(in_channels);
+        let row_stride = CodeRows::row_stride(shape.in_channels);
         let quads = row_stride / QUAD;
+        let quad_stride = int8_quad_stride(shape.out_channels, channel);
         // SAFETY: the caller runs on `L`'s CPU.
         let mut totals = [[unsafe { L::zero_exact() }; V]; P];
         for kernel_y in 0..shape.kernel_height {
@@ -645,8 +648,7 @@ impl TileInput for CodeRows<'_> {
                     continue;
                 };
                 let tap = kernel_y * shape.kernel_width + kernel_x;
-                let weights =
-                    weight[int8_quad_index(in_channels, out_channels, tap, 0, channel)..].as_ptr();
+                let weights = weight[shape.int8_index(tap, 0, channel)..].as_ptr();
                 // SAFETY: every source holds `quads` whole quads of codes (padded rows,
                 // `CodeRows`, or the zero row, at least as long); the tap's (zero-padded)
                 // quads of the block are readable: the caller's promises.
@@ -654,12 +656,12 @@ impl TileInput for CodeRows<'_> {
                     // Per pixel and vector: the halves of its channels (lane pairs).
                     let mut sums = [[(L::zero_integers(), L::zero_integers()); V]; P];
                     for quad in 0..quads {
-                        let row = weights.add(quad * out_channels * QUAD);
+                        let row = weights.add(quad * quad_stride);
                         // The U-Net's weights come from L3 once per step, a quad row's
-                        // `V WIDTH` channels (one or two cache lines) `4 out_channels`
-                        // bytes apart: ask for the lines `PREFETCH_QUADS` rows ahead. A
-                        // hint only (it never faults), hence the wrapping address.
-                        let ahead = row.wrapping_add(PREFETCH_QUADS * out_channels * QUAD);
+                        // `V WIDTH` channels (one or two cache lines) `quad_stride` bytes
+                        // apart: ask for the lines `PREFETCH_QUADS` rows ahead. A hint only
+                        // (it never faults), hence the wrapping address.
+                        let ahead = row.wrapping_add(PREFETCH_QUADS * quad_stride);
                         for line in (0..V * L::WIDTH * QUAD).step_by(64) {
                             _mm_prefetch::<_MM_HINT_T0>(ahead.wrapping_add(line).cast());
                         }
@@ -750,6 +752,9 @@ unsafe fn channel_blocks<L: Int8Lanes, I: TileInput, const P: usize, const V: us
     accumulate: Accumulate,
     channel: &mut usize,
 ) {
+    // A block reads its quads `quad_stride` apart, which holds inside one block of the
+    // weight layout: blocks from a multiple of their width never straddle one.
+    const { assert!(INT8_CHANNEL_BLOCK.is_multiple_of(V * L::WIDTH)) };
     let out_channels = shape.out_channels;
     let positions = shape.out_height() * shape.out_width();
     let width = V * L::WIDTH;
