@@ -12,7 +12,8 @@
 //! feature detection, and its name in `backends()` of the kernel tests and in
 //! `SCDP_REQUIRE_BACKENDS`, so the shared test suite runs it against the reference. The int8
 //! weight layout already suits SDOT: convolution weights are stored in input-channel quads
-//! (`[kh, kw, in/4, out, 4]`, docs/FORMAT.md), the four bytes one `sdot` lane reads.
+//! (`[out/64, kh, kw, in/4, 64, 4]`, [`int8_quad_index`], docs/FORMAT.md), the four bytes
+//! one `sdot` lane reads.
 
 pub mod ops;
 pub mod scalar;
