@@ -104,8 +104,8 @@ impl Context<'_> {
             self.kernels,
             &block.film_weight,
             self.activated_cond,
-            base,
-            film,
+            (base, film),
+            &mut self.quantized,
         );
         let (scale, bias) = film.split_at(out_channels);
         for position in temporary[..length * out_channels].chunks_exact_mut(out_channels) {

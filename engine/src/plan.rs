@@ -266,11 +266,16 @@ impl Lengths {
         // Int8 layer inputs, quantized one layer at a time: the trunk's fit one activation
         // buffer as two digit planes; the U-Net's are at most `horizon` rows of an up
         // block's concatenated input (or the sample, the first block's), as i16 codes
-        // padded to whole quads; an int8 stem's patches go a band of output rows at a
-        // time (at least one row).
+        // padded to whole quads, or the FiLM layers' one row; an int8 stem's patches go a
+        // band of output rows at a time (at least one row).
         let unet_codes = 2 * horizon * 4 * max(2 * widest, action_dim).div_ceil(4);
+        // The FiLM layers' input, the activated global condition, as one row of codes.
+        let cond_codes = 2 * 4 * (config.global_cond_dim() as u64).div_ceil(4);
         let stem_patch_row = 2 * stem_width as u64 * frame::PATCH_CHANNELS as u64;
-        let quantized_bytes = max(max(2 * trunk_activation, unet_codes), stem_patch_row);
+        let quantized_bytes = max(
+            max(2 * trunk_activation, unet_codes),
+            max(stem_patch_row, cond_codes),
+        );
         let quantized = aligned(quantized_bytes.div_ceil(4));
         let persistent = features
             + states

@@ -827,10 +827,70 @@ fn code_quantization_round_trips_and_pads_rows() {
     }
 }
 
+/// The FiLM layers' product on every backend against the textbook: the exact integer sum
+/// of codes times int8 weights (i64), rounded once to f32, then scaled and added as the
+/// contract orders it (f32 products, not fused), so the bits must agree exactly. Column
+/// counts around the vector steps (32 codes on AVX-512, 16 on AVX2), the 4x-unrolled loop,
+/// the i32 segments of 1024 columns (1025, 3000), the model's 656 and 658; codes at
+/// +-16383 and weights at -128 and 127 in the extreme cases, whose sums exceed i32 beyond
+/// 1024 columns.
 #[test]
-fn weight_only_int8_matrix_vector_product_matches_f64() {
-    for (name, kernels) in backends() {
-        weight_only_int8_matvec_matches_f64(name, kernels);
+fn int8_code_matrix_vector_product_is_exact_then_scaled() {
+    let mut rng = Lcg(23);
+    let shapes = [
+        (37, 91),
+        (1, 7),
+        (4, 32),
+        (3, 33),
+        (5, 128),
+        (6, 656),
+        (2, 658),
+        (3, 1024),
+        (2, 1025),
+        (2, 3000),
+        (0, 16),
+    ];
+    for (case, (rows, cols)) in shapes.into_iter().enumerate() {
+        for extreme in [false, true] {
+            let weight: Vec<i8> = if extreme {
+                (0..rows * cols)
+                    .map(|i| if i % 5 == 0 { -128 } else { 127 })
+                    .collect()
+            } else {
+                random_weights_with_extremes(&mut rng, rows * cols)
+            };
+            let codes: Vec<i32> = if extreme {
+                (0..cols)
+                    .map(|c| if c % 7 == 3 { 16383 } else { -16383 })
+                    .collect()
+            } else {
+                random_codes(&mut rng, cols, false)
+            };
+            let padded = padded_codes(&codes, cols);
+            let input = CodeRows {
+                codes: &padded,
+                scale: 1e-4 + rng.next().abs() * 1e-3,
+            };
+            let scales: Vec<f32> = (0..rows).map(|_| 0.002 + rng.next().abs() * 0.01).collect();
+            let base = rng.vec(rows);
+            let expected: Vec<f32> = (0..rows)
+                .map(|r| {
+                    let sum: i64 = (0..cols)
+                        .map(|c| weight[r * cols + c] as i64 * codes[c] as i64)
+                        .sum();
+                    base[r] + (sum as f32 * input.scale) * scales[r]
+                })
+                .collect();
+            for (name, kernels) in backends() {
+                let mut found = vec![f32::NAN; rows];
+                kernels.matvec_int8_codes(&weight, &scales, &input, &base, &mut found);
+                assert_same_bits(
+                    &found,
+                    &expected,
+                    &format!("case {case} {name} {rows}x{cols} extreme {extreme}"),
+                );
+            }
+        }
     }
 }
 
@@ -845,29 +905,6 @@ fn random_weights_with_extremes(rng: &mut Lcg, len: usize) -> Vec<i8> {
             _ => q,
         })
         .collect()
-}
-
-fn weight_only_int8_matvec_matches_f64(backend: &str, kernels: &dyn Kernels) {
-    let mut rng = Lcg(23);
-    for (rows, cols) in [(37, 91), (1, 7), (4, 32), (9, 784), (3, 45)] {
-        let weight = random_weights_with_extremes(&mut rng, rows * cols);
-        let scales: Vec<f32> = (0..rows).map(|_| 0.002 + rng.next().abs() * 0.01).collect();
-        let input = rng.vec(cols);
-        let base = rng.vec(rows);
-        let mut found = vec![f32::NAN; rows];
-        kernels.matvec_weight_int8(&weight, &scales, &input, &base, &mut found);
-        for r in 0..rows {
-            let terms = (0..cols).map(|c| weight[r * cols + c] as f64 * input[c] as f64);
-            let expected = base[r] as f64 + scales[r] as f64 * terms.clone().sum::<f64>();
-            let magnitude =
-                base[r].abs() as f64 + scales[r] as f64 * terms.map(f64::abs).sum::<f64>();
-            assert!(
-                (found[r] as f64 - expected).abs() <= 1e-5 * magnitude.max(1.0),
-                "{backend} {rows}x{cols} row {r}: {} vs {expected}",
-                found[r]
-            );
-        }
-    }
 }
 
 /// The U-Net's sequence shapes and their awkward cousins, on every backend against the
@@ -1487,7 +1524,11 @@ fn matrix_vector_product_of_an_empty_input_is_the_base() {
         kernels.matvec(&[], &[], &base, &mut output);
         assert_eq!(output, base, "{name} f32");
         let mut output = [f32::NAN; 3];
-        kernels.matvec_weight_int8(&[], &[0.5; 3], &[], &base, &mut output);
+        let codes = CodeRows {
+            codes: &[],
+            scale: 1.0,
+        };
+        kernels.matvec_int8_codes(&[], &[0.5; 3], &codes, &base, &mut output);
         assert_eq!(output, base, "{name} int8");
     }
 }

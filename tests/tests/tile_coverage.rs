@@ -108,15 +108,15 @@ impl Kernels for Recording {
         )
     }
 
-    fn matvec_weight_int8(
+    fn matvec_int8_codes(
         &self,
         weight: &[i8],
         row_scales: &[f32],
-        input: &[f32],
+        input: &CodeRows<'_>,
         base: &[f32],
         output: &mut [f32],
     ) {
-        Scalar.matvec_weight_int8(weight, row_scales, input, base, output)
+        Scalar.matvec_int8_codes(weight, row_scales, input, base, output)
     }
 }
 

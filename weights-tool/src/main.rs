@@ -252,7 +252,7 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
     println!("  storage        {quant}");
     if quant == Quant::Int8 {
         println!(
-            "  int8 scheme    convolutions: int8 weights x 15-bit activations (one scale per layer input; two int8 digits in the trunk, i16 in the U-Net); FiLM: int8 weights, f32 activations"
+            "  int8 scheme    convolutions: int8 weights x 15-bit activations (one scale per layer input; two int8 digits in the trunk, i16 in the U-Net); FiLM: int8 weights x 15-bit activations (i16)"
         );
         if scenes.is_empty() {
             println!(

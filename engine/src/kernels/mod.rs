@@ -422,13 +422,17 @@ pub trait Kernels: Sync {
         accumulate: Accumulate,
     );
 
-    /// [`matvec`](Self::matvec) with int8 weights, one scale per row, f32 input:
-    /// `output[r] = base[r] + (sum_c (q_w[r, c] as f32) input[c]) * row_scales[r]`.
-    fn matvec_weight_int8(
+    /// [`matvec`](Self::matvec) with int8 weights (row-major `[rows, cols]`, one scale per
+    /// row) on the input's 15-bit codes ([`CodeRows`]: one row of `cols` codes, padded to
+    /// whole quads, and its scale). The integer sum `S[r] = sum_c code[c] q_w[r, c]` is
+    /// exact (what every implementation must reproduce), then rounded once to f32 (to
+    /// nearest); `output[r] = base[r] + (S[r] * input scale) * row_scales[r]`, products then
+    /// a sum, not fused, so every implementation gives the same bits.
+    fn matvec_int8_codes(
         &self,
         weight: &[i8],
         row_scales: &[f32],
-        input: &[f32],
+        input: &CodeRows<'_>,
         base: &[f32],
         output: &mut [f32],
     );
@@ -649,19 +653,24 @@ pub fn convolve_pixel(
     }
 }
 
-/// `output = base + W input` with whichever weights the file holds (int8 weights are
-/// weight-only here: the FiLM layers read each weight once, so the input stays f32).
+/// `output = base + W input` with whichever weights the file holds; int8 weights multiply
+/// the input's 15-bit codes, quantized into `quantized` (the U-Net's scheme): the FiLM
+/// layers read each weight once, and integer products take one instruction for what
+/// widening every weight to f32 took three.
 pub fn linear(
     kernels: &dyn Kernels,
     weight: &Weight<'_>,
     input: &[f32],
-    base: &[f32],
-    output: &mut [f32],
+    (base, output): (&[f32], &mut [f32]),
+    quantized: &mut QuantizeScratch<'_>,
 ) {
     match *weight {
         Weight::F32(values) => kernels.matvec(values, input, base, output),
+        // No codes to make of no input; the sums are empty.
+        Weight::Int8 { .. } if input.is_empty() => output.copy_from_slice(base),
         Weight::Int8 { values, scales } => {
-            kernels.matvec_weight_int8(values, scales, input, base, output)
+            let codes = quantized.quantize_codes(kernels, input, input.len());
+            kernels.matvec_int8_codes(values, scales, &codes, base, output)
         }
     }
 }

@@ -337,6 +337,33 @@ impl CodeSums for CodeRows<'_> {
     }
 }
 
+/// The column count of [`Kernels::matvec_int8_codes`]' weight for `rows` rows, every length
+/// checked.
+///
+/// # Panics
+/// If the lengths disagree (the model code never passes such slices).
+pub(crate) fn assert_matvec_codes_lengths(
+    weight: &[i8],
+    row_scales: &[f32],
+    input: &CodeRows<'_>,
+    base: &[f32],
+    rows: usize,
+) -> usize {
+    assert_eq!(row_scales.len(), rows);
+    assert_eq!(base.len(), rows);
+    let cols = weight.len().checked_div(rows).unwrap_or(0);
+    assert_eq!(weight.len(), rows * cols);
+    assert!(input.codes.len() >= cols);
+    cols
+}
+
+/// What [`Kernels::matvec_int8_codes`] stores for a row's exact sum: rounded once to f32,
+/// times the input's scale, times the row's, plus the base.
+#[inline(always)]
+pub(crate) fn scaled_row_sum(sum: i64, scale: f32, row_scale: f32, base: f32) -> f32 {
+    base + (sum as f32 * scale) * row_scale
+}
+
 /// Base of the activation digits as an integer factor (`code = 128 high + low`).
 const DIGIT_BASE: i32 = ops::DIGIT_BASE as i32;
 
@@ -468,6 +495,26 @@ impl Kernels for Scalar {
         }
     }
 
+    fn matvec_int8_codes(
+        &self,
+        weight: &[i8],
+        row_scales: &[f32],
+        input: &CodeRows<'_>,
+        base: &[f32],
+        output: &mut [f32],
+    ) {
+        let cols = assert_matvec_codes_lengths(weight, row_scales, input, base, output.len());
+        for (r, out) in output.iter_mut().enumerate() {
+            let row = &weight[r * cols..][..cols];
+            let sum: i64 = row
+                .iter()
+                .zip(input.codes)
+                .map(|(&w, &code)| i64::from(w) * i64::from(code))
+                .sum();
+            *out = scaled_row_sum(sum, input.scale, row_scales[r], base[r]);
+        }
+    }
+
     fn conv_int8(
         &self,
         shape: &ConvShape,
@@ -496,31 +543,5 @@ impl Kernels for Scalar {
         assert_code_lengths(shape, input, (weight, weight_scales, bias), output.len());
         let parameters = (weight, weight_scales, bias);
         conv_int8_map(shape, input, parameters, output, accumulate);
-    }
-
-    fn matvec_weight_int8(
-        &self,
-        weight: &[i8],
-        row_scales: &[f32],
-        input: &[f32],
-        base: &[f32],
-        output: &mut [f32],
-    ) {
-        assert_eq!(weight.len(), output.len() * input.len());
-        assert_eq!(row_scales.len(), output.len());
-        assert_eq!(base.len(), output.len());
-        if input.is_empty() {
-            // As in `matvec`.
-            return output.copy_from_slice(base);
-        }
-        for (((out, row), &scale), &start) in output
-            .iter_mut()
-            .zip(weight.chunks_exact(input.len()))
-            .zip(row_scales)
-            .zip(base)
-        {
-            let sum: f32 = row.iter().zip(input).map(|(&w, &x)| w as f32 * x).sum();
-            *out = start + sum * scale;
-        }
     }
 }

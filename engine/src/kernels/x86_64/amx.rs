@@ -796,16 +796,16 @@ impl Kernels for Amx {
         )
     }
 
-    fn matvec_weight_int8(
+    fn matvec_int8_codes(
         &self,
         weight: &[i8],
         row_scales: &[f32],
-        input: &[f32],
+        input: &CodeRows<'_>,
         base: &[f32],
         output: &mut [f32],
     ) {
         self.avx512
-            .matvec_weight_int8(weight, row_scales, input, base, output)
+            .matvec_int8_codes(weight, row_scales, input, base, output)
     }
 
     fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {

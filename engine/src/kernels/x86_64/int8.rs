@@ -43,18 +43,19 @@ use core::arch::x86_64::{
     _mm256_hadd_epi32, _mm256_loadu_ps, _mm256_loadu_si256, _mm256_madd_epi16,
     _mm256_maddubs_epi16, _mm256_mul_pd, _mm256_mul_ps, _mm256_permute4x64_epi64, _mm256_set_m128,
     _mm256_set1_epi16, _mm256_set1_epi32, _mm256_set1_epi64x, _mm256_set1_pd, _mm256_set1_ps,
-    _mm256_setzero_pd, _mm256_setzero_ps, _mm256_setzero_si256, _mm256_storeu_ps, _mm512_add_epi32,
-    _mm512_add_pd, _mm512_add_ps, _mm512_castpd_ps, _mm512_castpd256_pd512, _mm512_castsi512_si256,
-    _mm512_cvtepi8_epi16, _mm512_cvtepi32_pd, _mm512_cvtpd_ps, _mm512_dpbusd_epi32,
-    _mm512_dpwssd_epi32, _mm512_extracti64x4_epi64, _mm512_insertf64x4, _mm512_loadu_ps,
-    _mm512_loadu_si512, _mm512_mul_pd, _mm512_mul_ps, _mm512_permutex2var_epi32, _mm512_set1_epi32,
-    _mm512_set1_epi64, _mm512_set1_pd, _mm512_set1_ps, _mm512_setr_epi32, _mm512_setzero_pd,
-    _mm512_setzero_ps, _mm512_setzero_si512, _mm512_storeu_ps,
+    _mm256_setzero_pd, _mm256_setzero_ps, _mm256_setzero_si256, _mm256_storeu_ps,
+    _mm256_storeu_si256, _mm512_add_epi32, _mm512_add_pd, _mm512_add_ps, _mm512_castpd_ps,
+    _mm512_castpd256_pd512, _mm512_castsi512_si256, _mm512_cvtepi8_epi16, _mm512_cvtepi32_pd,
+    _mm512_cvtpd_ps, _mm512_dpbusd_epi32, _mm512_dpwssd_epi32, _mm512_extracti64x4_epi64,
+    _mm512_insertf64x4, _mm512_loadu_ps, _mm512_loadu_si512, _mm512_mul_pd, _mm512_mul_ps,
+    _mm512_permutex2var_epi32, _mm512_set1_epi32, _mm512_set1_epi64, _mm512_set1_pd,
+    _mm512_set1_ps, _mm512_setr_epi32, _mm512_setzero_pd, _mm512_setzero_ps, _mm512_setzero_si512,
+    _mm512_storeu_ps, _mm512_storeu_si512,
 };
 
 use crate::kernels::scalar::{
-    CodeSums, assert_code_lengths, assert_int8_lengths, assert_int8_pixel_lengths, conv_int8_pixel,
-    conv_int8_pixels,
+    CodeSums, assert_code_lengths, assert_int8_lengths, assert_int8_pixel_lengths,
+    assert_matvec_codes_lengths, conv_int8_pixel, conv_int8_pixels, scaled_row_sum,
 };
 use crate::kernels::{
     Accumulate, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, MAX_DIGIT_CHANNELS, QUAD,
@@ -103,6 +104,12 @@ pub(crate) unsafe trait Int8Lanes {
         codes: Self::Integers,
         weights: Self::Integers,
     ) -> Self::Integers;
+    /// `2 WIDTH` consecutive i16 codes, two a lane.
+    unsafe fn load_codes(from: *const i16) -> Self::Integers;
+    /// `a + b` per i32 lane (wrapping).
+    unsafe fn add_integers(a: Self::Integers, b: Self::Integers) -> Self::Integers;
+    /// The sum of every i32 lane, exact.
+    unsafe fn lane_sum(sums: Self::Integers) -> i64;
     /// The sums of adjacent lane pairs: those of `first` (channels 0 .. WIDTH/2), then those
     /// of `second`, in channel order.
     unsafe fn add_lane_pairs(first: Self::Integers, second: Self::Integers) -> Self::Integers;
@@ -190,6 +197,23 @@ unsafe impl Int8Lanes for PairSumsYmm {
         // SAFETY: the caller runs on AVX2 (trait contract). `vpmaddwd` saturates only
         // for two products of -32768 x -32768, which 15-bit codes cannot make.
         unsafe { _mm256_add_epi32(sum, _mm256_madd_epi16(codes, weights)) }
+    }
+    #[inline(always)]
+    unsafe fn load_codes(from: *const i16) -> __m256i {
+        // SAFETY: AVX2, and 32 bytes readable (trait contract).
+        unsafe { _mm256_loadu_si256(from.cast()) }
+    }
+    #[inline(always)]
+    unsafe fn add_integers(a: __m256i, b: __m256i) -> __m256i {
+        // SAFETY: the caller runs on AVX2 (trait contract).
+        unsafe { _mm256_add_epi32(a, b) }
+    }
+    #[inline(always)]
+    unsafe fn lane_sum(sums: __m256i) -> i64 {
+        let mut lanes = [0i32; 8];
+        // SAFETY: AVX2 (trait contract); `lanes` holds 32 bytes.
+        unsafe { _mm256_storeu_si256(lanes.as_mut_ptr().cast(), sums) };
+        lanes.iter().map(|&lane| i64::from(lane)).sum()
     }
     #[inline(always)]
     unsafe fn add_lane_pairs(first: __m256i, second: __m256i) -> __m256i {
@@ -301,6 +325,23 @@ unsafe impl Int8Lanes for VnniZmm {
         // SAFETY: the caller runs on AVX-512 VNNI (trait contract). `vpdpwssd` wraps, and
         // the sums it makes here fit (`MAX_DIGIT_CHANNELS`).
         unsafe { _mm512_dpwssd_epi32(sum, codes, weights) }
+    }
+    #[inline(always)]
+    unsafe fn load_codes(from: *const i16) -> __m512i {
+        // SAFETY: AVX-512F, and 64 bytes readable (trait contract).
+        unsafe { _mm512_loadu_si512(from.cast()) }
+    }
+    #[inline(always)]
+    unsafe fn add_integers(a: __m512i, b: __m512i) -> __m512i {
+        // SAFETY: the caller runs on AVX-512F (trait contract).
+        unsafe { _mm512_add_epi32(a, b) }
+    }
+    #[inline(always)]
+    unsafe fn lane_sum(sums: __m512i) -> i64 {
+        let mut lanes = [0i32; 16];
+        // SAFETY: AVX-512F (trait contract); `lanes` holds 64 bytes.
+        unsafe { _mm512_storeu_si512(lanes.as_mut_ptr().cast(), sums) };
+        lanes.iter().map(|&lane| i64::from(lane)).sum()
     }
     #[inline(always)]
     unsafe fn add_lane_pairs(first: __m512i, second: __m512i) -> __m512i {
@@ -478,6 +519,8 @@ pub(crate) fn tiles_apply(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
     input.nonnegative && shape.in_channels.is_multiple_of(QUAD)
 }
 
+const DIGIT_PREFETCH_QUADS: usize = 8;
+
 /// `sums +` the exact i32 products of one kernel tap and one digit plane: `P` pixels (their
 /// activation rows) x `V` vectors of channels, over every input-channel quad. The sums stay
 /// in registers for the whole quad loop.
@@ -499,6 +542,10 @@ unsafe fn add_digit_products<L: Int8Lanes, const P: usize, const V: usize>(
         // caller vouched for.
         unsafe {
             let row = weights.add(quad * quad_stride);
+            let ahead = row.wrapping_add(DIGIT_PREFETCH_QUADS * quad_stride);
+            for line in (0..V * L::WIDTH * QUAD).step_by(64) {
+                _mm_prefetch::<_MM_HINT_T0>(ahead.wrapping_add(line).cast());
+            }
             let vectors: [L::Integers; V] =
                 core::array::from_fn(|vector| L::load_weights(row.add(vector * L::WIDTH * QUAD)));
             for pixel in 0..P {
@@ -865,6 +912,110 @@ pub(crate) unsafe fn conv_pixel<L: Int8Lanes, const V: usize>(
     }
 }
 
+/// Columns of a row summed in i32 lanes before the lanes are added up in i64: each lane then
+/// holds at most `MAX_DIGIT_CHANNELS / WIDTH` products of `|code| <= 16383` and
+/// `|q_w| <= 128`, far inside i32, and so does the sum of a segment.
+const MATVEC_SEGMENT: usize = MAX_DIGIT_CHANNELS;
+
+/// Bytes ahead of the weights being read that [`segment_sum`] asks the caches for. The FiLM
+/// rows are one contiguous stream from L3, yet the hardware prefetchers alone kept the
+/// product at the rate of the f32 version; 4 KB ahead cut its share of the loop's samples
+/// by about a quarter (perf, 1-16 KB tried).
+const MATVEC_PREFETCH: usize = 4096;
+
+/// [`Kernels::matvec_int8_codes`]: each row's weights widened to i16 and multiplied by the
+/// codes two a lane (`vpdpwssd`, `vpmaddwd`), the row's exact sum formed in i64 from
+/// segments of [`MATVEC_SEGMENT`] columns, the columns past the last whole vector on the
+/// scalar path (integer sums are exact in any order).
+///
+/// # Safety
+/// The CPU supports `L`.
+///
+/// [`Kernels::matvec_int8_codes`]: crate::kernels::Kernels::matvec_int8_codes
+#[inline(always)]
+pub(crate) unsafe fn matvec_codes<L: Int8Lanes>(
+    weight: &[i8],
+    row_scales: &[f32],
+    input: &CodeRows<'_>,
+    base: &[f32],
+    output: &mut [f32],
+) {
+    let cols = assert_matvec_codes_lengths(weight, row_scales, input, base, output.len());
+    let step = 2 * L::WIDTH;
+    let vector_cols = cols - cols % step;
+    let codes = &input.codes[..cols];
+    for (r, out) in output.iter_mut().enumerate() {
+        let row = &weight[r * cols..][..cols];
+        let mut sum = 0i64;
+        for start in (0..vector_cols).step_by(MATVEC_SEGMENT) {
+            let end = (start + MATVEC_SEGMENT).min(vector_cols);
+            // SAFETY: `start..end` lies within `vector_cols <= cols`, the length of `row`
+            // and `codes`, in whole steps; the caller runs on `L`'s CPU.
+            sum += unsafe { segment_sum::<L>(row.as_ptr(), codes.as_ptr(), start..end) };
+        }
+        for (&w, &code) in row[vector_cols..].iter().zip(&codes[vector_cols..]) {
+            sum += i64::from(w) * i64::from(code);
+        }
+        *out = scaled_row_sum(sum, input.scale, row_scales[r], base[r]);
+    }
+}
+
+/// `sum_c code[c] w[c]` over `columns`, exact.
+///
+/// # Safety
+/// The CPU supports `L`; `columns` starts and ends at multiples of `2 WIDTH`, spans at most
+/// [`MATVEC_SEGMENT`], and both pointers are readable up to its end.
+#[inline(always)]
+unsafe fn segment_sum<L: Int8Lanes>(
+    weights: *const i8,
+    codes: *const i16,
+    columns: core::ops::Range<usize>,
+) -> i64 {
+    let step = 2 * L::WIDTH;
+    // Four independent sums hide the latency of the products.
+    // SAFETY: the caller runs on `L`'s CPU.
+    let mut sums = [unsafe { L::zero_integers() }; 4];
+    let mut column = columns.start;
+    // SAFETY (both loops): every read is `2 WIDTH` elements from a column below
+    // `columns.end`, in whole steps: inside what the caller vouched for.
+    while column + 4 * step <= columns.end {
+        for line in (0..4 * step).step_by(64) {
+            let ahead = weights.wrapping_add(column + line + MATVEC_PREFETCH);
+            // SAFETY: a hint only, it never faults.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(ahead.cast()) };
+        }
+        for (k, sum) in sums.iter_mut().enumerate() {
+            let at = column + k * step;
+            *sum = unsafe {
+                L::dot_code_pairs(
+                    *sum,
+                    L::load_codes(codes.add(at)),
+                    L::widen_quads(weights.add(at)),
+                )
+            };
+        }
+        column += 4 * step;
+    }
+    while column < columns.end {
+        sums[0] = unsafe {
+            L::dot_code_pairs(
+                sums[0],
+                L::load_codes(codes.add(column)),
+                L::widen_quads(weights.add(column)),
+            )
+        };
+        column += step;
+    }
+    // SAFETY: the caller runs on `L`'s CPU; the lanes' sums fit i32 (`MATVEC_SEGMENT`).
+    unsafe {
+        let pairs = (
+            L::add_integers(sums[0], sums[1]),
+            L::add_integers(sums[2], sums[3]),
+        );
+        L::lane_sum(L::add_integers(pairs.0, pairs.1))
+    }
+}
+
 /// Pixels and channel vectors of a tile, per backend, both digit planes' sums held across
 /// the kernel: AVX2 has 16 YMM registers (8 sums, 2 weight vectors, the broadcast, the ones
 /// and a product); AVX-512 has 32 ZMM registers (24 sums, 4 weight vectors, the
@@ -890,6 +1041,22 @@ macro_rules! backend {
 
             const TILE: (usize, usize) = $tile;
             const CODES_TILE: (usize, usize) = $codes_tile;
+
+            /// [`matvec_codes`](super::matvec_codes) on this backend.
+            ///
+            /// # Safety
+            /// The CPU supports the backend's features.
+            #[target_feature(enable = $features)]
+            pub(crate) unsafe fn matvec_codes(
+                weight: &[i8],
+                row_scales: &[f32],
+                input: &CodeRows<'_>,
+                base: &[f32],
+                output: &mut [f32],
+            ) {
+                // SAFETY: this function's contract is the body's.
+                unsafe { super::matvec_codes::<$lanes>(weight, row_scales, input, base, output) }
+            }
 
             /// [`conv`](super::conv) of signed codes on this backend.
             ///

@@ -3,12 +3,10 @@
 //! `#[inline(always)]` lets these intrinsics compile with that backend's instructions.
 
 use core::arch::x86_64::{
-    __m256, __m512, _mm_add_ps, _mm_add_ss, _mm_cvtss_f32, _mm_loadl_epi64, _mm_loadu_si128,
-    _mm_movehl_ps, _mm_shuffle_ps, _mm256_add_ps, _mm256_castps256_ps128, _mm256_cvtepi8_epi32,
-    _mm256_cvtepi32_ps, _mm256_extractf128_ps, _mm256_fmadd_ps, _mm256_loadu_ps, _mm256_set1_ps,
-    _mm256_setzero_ps, _mm256_storeu_ps, _mm512_add_ps, _mm512_cvtepi8_epi32, _mm512_cvtepi32_ps,
-    _mm512_fmadd_ps, _mm512_loadu_ps, _mm512_reduce_add_ps, _mm512_set1_ps, _mm512_setzero_ps,
-    _mm512_storeu_ps,
+    __m256, __m512, _mm_add_ps, _mm_add_ss, _mm_cvtss_f32, _mm_movehl_ps, _mm_shuffle_ps,
+    _mm256_add_ps, _mm256_castps256_ps128, _mm256_extractf128_ps, _mm256_fmadd_ps, _mm256_loadu_ps,
+    _mm256_set1_ps, _mm256_setzero_ps, _mm256_storeu_ps, _mm512_add_ps, _mm512_fmadd_ps,
+    _mm512_loadu_ps, _mm512_reduce_add_ps, _mm512_set1_ps, _mm512_setzero_ps, _mm512_storeu_ps,
 };
 
 /// A vector of f32 lanes and the operations the f32 kernels need.
@@ -26,8 +24,6 @@ pub(crate) unsafe trait Lanes {
     /// `a * b + c`, one rounding.
     unsafe fn fma(a: Self::Vector, b: Self::Vector, c: Self::Vector) -> Self::Vector;
     unsafe fn add(a: Self::Vector, b: Self::Vector) -> Self::Vector;
-    /// `WIDTH` int8 values widened to f32 (`from` covers `WIDTH` bytes).
-    unsafe fn widen_int8(from: *const i8) -> Self::Vector;
     /// The sum of the lanes, in some fixed order.
     unsafe fn horizontal_sum(value: Self::Vector) -> f32;
 }
@@ -72,11 +68,6 @@ unsafe impl Lanes for Ymm {
     unsafe fn add(a: __m256, b: __m256) -> __m256 {
         // SAFETY: the caller runs on AVX2 (trait contract).
         unsafe { _mm256_add_ps(a, b) }
-    }
-    #[inline(always)]
-    unsafe fn widen_int8(from: *const i8) -> __m256 {
-        // SAFETY: AVX2, and 8 bytes readable, all `loadl` reads (trait contract).
-        unsafe { _mm256_cvtepi32_ps(_mm256_cvtepi8_epi32(_mm_loadl_epi64(from.cast()))) }
     }
     #[inline(always)]
     unsafe fn horizontal_sum(value: __m256) -> f32 {
@@ -125,11 +116,6 @@ unsafe impl Lanes for Zmm {
     unsafe fn add(a: __m512, b: __m512) -> __m512 {
         // SAFETY: the caller runs on AVX-512F (trait contract).
         unsafe { _mm512_add_ps(a, b) }
-    }
-    #[inline(always)]
-    unsafe fn widen_int8(from: *const i8) -> __m512 {
-        // SAFETY: AVX-512F, and 16 bytes readable (trait contract).
-        unsafe { _mm512_cvtepi32_ps(_mm512_cvtepi8_epi32(_mm_loadu_si128(from.cast()))) }
     }
     #[inline(always)]
     unsafe fn horizontal_sum(value: __m512) -> f32 {

@@ -25,7 +25,7 @@ macro_rules! shared_kernels {
 
         fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { sequence::$backend::matvec(weight, None, input, base, output) }
+            unsafe { sequence::$backend::matvec(weight, input, base, output) }
         }
 
         fn conv_int8(
@@ -78,16 +78,16 @@ macro_rules! shared_kernels {
             }
         }
 
-        fn matvec_weight_int8(
+        fn matvec_int8_codes(
             &self,
             weight: &[i8],
             row_scales: &[f32],
-            input: &[f32],
+            input: &CodeRows<'_>,
             base: &[f32],
             output: &mut [f32],
         ) {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { sequence::$backend::matvec(weight, Some(row_scales), input, base, output) }
+            unsafe { int8::$backend::matvec_codes(weight, row_scales, input, base, output) }
         }
 
         fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {

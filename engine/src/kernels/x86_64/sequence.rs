@@ -1,8 +1,8 @@
 //! Kernels for the conditional U-Net's f32 weights, over a vector width ([`Lanes`]: YMM for
 //! AVX2, ZMM for AVX-512; one generic body, instantiated in the thin `#[target_feature]`
 //! wrappers at the end): 1-D convolutions over short sequences (`[T, C]`, T = 16, 8 or 4),
-//! its transposed upsampling convolution, and the FiLM matrix-vector products (whose weights
-//! may also be int8, widened on load). Their weights are read at every denoising step, so
+//! its transposed upsampling convolution, and the FiLM matrix-vector products of f32 weights
+//! (int8 ones multiply codes, in `int8`). Their weights are read at every denoising step, so
 //! these kernels read each weight once per call where they can:
 //! - on sequences of up to 8 positions, each weight row is streamed in memory order and
 //!   applied to every position (62 MB of f32 weights come from DRAM at every step);
@@ -18,41 +18,6 @@ use crate::kernels::{Accumulate, ConvShape};
 /// Output positions per register tile: 4 positions x 2 vectors are eight accumulators,
 /// leaving registers for the two weight vectors and the broadcast input (AVX2 has 16).
 const POSITIONS: usize = 4;
-
-/// A weight element type: f32, or int8 widened to f32 on load.
-pub(crate) trait WeightLane: Copy {
-    /// `L::WIDTH` consecutive weights as f32 lanes.
-    ///
-    /// # Safety
-    /// The CPU supports `L`; `L::WIDTH` elements from `source` are readable.
-    unsafe fn load<L: Lanes>(source: *const Self) -> L::Vector;
-
-    fn to_f32(self) -> f32;
-}
-
-impl WeightLane for f32 {
-    #[inline(always)]
-    unsafe fn load<L: Lanes>(source: *const f32) -> L::Vector {
-        // SAFETY: the caller's promises are `L::load`'s.
-        unsafe { L::load(source) }
-    }
-
-    fn to_f32(self) -> f32 {
-        self
-    }
-}
-
-impl WeightLane for i8 {
-    #[inline(always)]
-    unsafe fn load<L: Lanes>(source: *const i8) -> L::Vector {
-        // SAFETY: the caller's promises are `L::widen_int8`'s.
-        unsafe { L::widen_int8(source) }
-    }
-
-    fn to_f32(self) -> f32 {
-        self as f32
-    }
-}
 
 /// A 1-D convolution seen from its outputs. Output position `t` (of `positions`) is stored in
 /// output row `out_first + t * out_step`; its tap `i` (of `taps`) multiplies weight block
@@ -191,9 +156,6 @@ impl Sequence {
         }
     }
 }
-
-/// Per-channel factors applied to the sums before the bias: the int8 weight scales.
-pub(crate) type Scales<'a> = Option<&'a [f32]>;
 
 /// Runs `sequence` on register tiles: `output[row, o] (+)= sum + bias[o]`.
 ///
@@ -542,8 +504,8 @@ fn narrow_channels(
     }
 }
 
-/// `output[r] = base[r] + (sum_c w[r, c] input[c]) * scales[r]` for a row-major `[rows,
-/// cols]` weight (the FiLM layers: rows of ~800 weights, each read once).
+/// `output[r] = base[r] + sum_c w[r, c] input[c]` for a row-major `[rows, cols]` weight
+/// (f32 FiLM layers: rows of ~650 weights, each read once).
 ///
 /// # Safety
 /// The CPU supports `L`.
@@ -551,19 +513,10 @@ fn narrow_channels(
 /// # Panics
 /// If the lengths disagree (the model code never passes such slices).
 #[inline(always)]
-unsafe fn matvec<L: Lanes, W: WeightLane>(
-    weight: &[W],
-    scales: Scales<'_>,
-    input: &[f32],
-    base: &[f32],
-    output: &mut [f32],
-) {
+unsafe fn matvec<L: Lanes>(weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
     let cols = input.len();
     assert_eq!(weight.len(), output.len() * cols);
     assert_eq!(base.len(), output.len());
-    if let Some(scales) = scales {
-        assert_eq!(scales.len(), output.len());
-    }
     if cols == 0 {
         output.copy_from_slice(base);
         return;
@@ -579,7 +532,7 @@ unsafe fn matvec<L: Lanes, W: WeightLane>(
             for (k, sum) in sums.iter_mut().enumerate() {
                 // SAFETY: `c + WIDTH (k + 1) <= cols`, the length of `row` and `input`.
                 unsafe {
-                    let w = W::load::<L>(row.as_ptr().add(c + width * k));
+                    let w = L::load(row.as_ptr().add(c + width * k));
                     let x = L::load(input.as_ptr().add(c + width * k));
                     *sum = L::fma(w, x, *sum);
                 }
@@ -589,7 +542,7 @@ unsafe fn matvec<L: Lanes, W: WeightLane>(
         while c < vector_cols {
             // SAFETY: `c + WIDTH <= vector_cols <= cols`.
             unsafe {
-                let w = W::load::<L>(row.as_ptr().add(c));
+                let w = L::load(row.as_ptr().add(c));
                 let x = L::load(input.as_ptr().add(c));
                 sums[0] = L::fma(w, x, sums[0]);
             }
@@ -600,9 +553,9 @@ unsafe fn matvec<L: Lanes, W: WeightLane>(
             L::horizontal_sum(L::add(L::add(sums[0], sums[1]), L::add(sums[2], sums[3])))
         };
         for (&w, &x) in row[vector_cols..].iter().zip(&input[vector_cols..]) {
-            sum += w.to_f32() * x;
+            sum += w * x;
         }
-        *out = base[r] + sum * scales.map_or(1.0, |scales| scales[r]);
+        *out = base[r] + sum;
     }
 }
 
@@ -612,7 +565,7 @@ unsafe fn matvec<L: Lanes, W: WeightLane>(
 macro_rules! backend {
     ($module:ident, $lanes:ty, $features:literal) => {
         pub(crate) mod $module {
-            use super::{Scales, Sequence, WeightLane};
+            use super::Sequence;
             use crate::kernels::scalar::assert_conv_lengths;
             use crate::kernels::{Accumulate, ConvShape};
 
@@ -635,21 +588,19 @@ macro_rules! backend {
                 }
             }
 
-            /// [`matvec`](super::matvec) on this backend's vectors: `Kernels::matvec` and
-            /// `Kernels::matvec_weight_int8`.
+            /// [`matvec`](super::matvec) on this backend's vectors: `Kernels::matvec`.
             ///
             /// # Safety
             /// The CPU supports the backend's features.
             #[target_feature(enable = $features)]
-            pub(crate) unsafe fn matvec<W: WeightLane>(
-                weight: &[W],
-                scales: Scales<'_>,
+            pub(crate) unsafe fn matvec(
+                weight: &[f32],
                 input: &[f32],
                 base: &[f32],
                 output: &mut [f32],
             ) {
                 // SAFETY: this function's contract is the body's.
-                unsafe { super::matvec::<$lanes, W>(weight, scales, input, base, output) }
+                unsafe { super::matvec::<$lanes>(weight, input, base, output) }
             }
 
             /// `Kernels::conv` for 1-D shapes; `None` (nothing done) for 2-D ones.
