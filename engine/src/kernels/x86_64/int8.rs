@@ -519,8 +519,6 @@ pub(crate) fn tiles_apply(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
     input.nonnegative && shape.in_channels.is_multiple_of(QUAD)
 }
 
-const DIGIT_PREFETCH_QUADS: usize = 8;
-
 /// `sums +` the exact i32 products of one kernel tap and one digit plane: `P` pixels (their
 /// activation rows) x `V` vectors of channels, over every input-channel quad. The sums stay
 /// in registers for the whole quad loop.
@@ -542,10 +540,6 @@ unsafe fn add_digit_products<L: Int8Lanes, const P: usize, const V: usize>(
         // caller vouched for.
         unsafe {
             let row = weights.add(quad * quad_stride);
-            let ahead = row.wrapping_add(DIGIT_PREFETCH_QUADS * quad_stride);
-            for line in (0..V * L::WIDTH * QUAD).step_by(64) {
-                _mm_prefetch::<_MM_HINT_T0>(ahead.wrapping_add(line).cast());
-            }
             let vectors: [L::Integers; V] =
                 core::array::from_fn(|vector| L::load_weights(row.add(vector * L::WIDTH * QUAD)));
             for pixel in 0..P {
