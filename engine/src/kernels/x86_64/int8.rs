@@ -519,9 +519,11 @@ pub(crate) fn tiles_apply(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
     input.nonnegative && shape.in_channels.is_multiple_of(QUAD)
 }
 
-/// `sums +` the exact i32 products of one kernel tap and one digit plane: `P` pixels (their
-/// activation rows) x `V` vectors of channels, over every input-channel quad. The sums stay
-/// in registers for the whole quad loop.
+/// `sums +` the exact i32 products of one kernel tap, both digit planes (high, then low):
+/// `P` pixels (their activation rows in each plane) x `V` vectors of channels, over every
+/// input-channel quad. The sums stay in registers for the whole quad loop, and each quad's
+/// weights, loaded once, serve both planes: a loop per plane loaded them twice, the second
+/// time from L1 (in-process A/B, encode 0.93-0.955x on AVX-512 VNNI, 0.90-1.01x on AVX2).
 ///
 /// # Safety
 /// The CPU supports `L`; each pointer in `activations` starts a row of `4 quads` readable
@@ -529,12 +531,12 @@ pub(crate) fn tiles_apply(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
 /// quads, `quad_stride` bytes apart, of `V WIDTH` channels readable from there.
 #[inline(always)]
 unsafe fn add_digit_products<L: Int8Lanes, const P: usize, const V: usize>(
-    mut sums: [[L::Integers; V]; P],
-    activations: [*const i8; P],
+    mut sums: [[[L::Integers; V]; P]; 2],
+    activations: [[*const i8; P]; 2],
     weights: *const i8,
     quads: usize,
     quad_stride: usize,
-) -> [[L::Integers; V]; P] {
+) -> [[[L::Integers; V]; P]; 2] {
     for quad in 0..quads {
         // SAFETY: quad `quad` of the block's channels and of each row is inside what the
         // caller vouched for.
@@ -543,10 +545,12 @@ unsafe fn add_digit_products<L: Int8Lanes, const P: usize, const V: usize>(
             let vectors: [L::Integers; V] =
                 core::array::from_fn(|vector| L::load_weights(row.add(vector * L::WIDTH * QUAD)));
             for pixel in 0..P {
-                let broadcast = L::broadcast_quad(activations[pixel].add(quad * QUAD));
-                for vector in 0..V {
-                    sums[pixel][vector] =
-                        L::dot_quads(sums[pixel][vector], broadcast, vectors[vector]);
+                for plane in 0..2 {
+                    let broadcast = L::broadcast_quad(activations[plane][pixel].add(quad * QUAD));
+                    for vector in 0..V {
+                        sums[plane][pixel][vector] =
+                            L::dot_quads(sums[plane][pixel][vector], broadcast, vectors[vector]);
+                    }
                 }
             }
         }
@@ -592,8 +596,8 @@ fn tap_sources<T: Copy, const P: usize>(
 }
 
 /// Both digit planes' exact i32 sums over the whole kernel for a tile (exact:
-/// [`MAX_DIGIT_TERMS`]), high then low. Each tap's weights serve both planes while they
-/// are in L1; the tile is sized so both sets of sums stay in registers.
+/// [`MAX_DIGIT_TERMS`]), high then low. Each quad's weights serve both planes as they are
+/// loaded; the tile is sized so both sets of sums stay in registers.
 ///
 /// # Safety
 /// As for [`TileInput::tile_totals`].
@@ -625,8 +629,8 @@ unsafe fn digit_sums<L: Int8Lanes, const P: usize, const V: usize>(
             // (`tiles_apply`) or the zero row, as long; the tap's quads of the block's
             // channels are inside `weight` (the caller's promise).
             unsafe {
-                sums[0] = add_digit_products::<L, P, V>(sums[0], high, weights, quads, quad_stride);
-                sums[1] = add_digit_products::<L, P, V>(sums[1], low, weights, quads, quad_stride);
+                sums =
+                    add_digit_products::<L, P, V>(sums, [high, low], weights, quads, quad_stride);
             }
         }
     }
