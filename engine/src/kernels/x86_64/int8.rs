@@ -1015,14 +1015,14 @@ unsafe fn segment_sum<L: Int8Lanes>(
 }
 
 /// Pixels and channel vectors of a tile, per backend, both digit planes' sums held across
-/// the kernel: AVX2 has 16 YMM registers (8 sums, 2 weight vectors, the broadcast, the ones
-/// and a product); AVX-512 has 32 ZMM registers (24 sums, 4 weight vectors, the
-/// broadcast). They are the one-plane tiles of session 5's search ((4, 2) on AVX2, (6, 4)
-/// on AVX-512, the fastest on the panda layers of `--bench kernels`) with half the pixels:
-/// a tile that ran the kernel once per plane read every tap's weights twice from L2, 1.27x
-/// the encode time on AVX-512 (in-process A/B).
-const AVX2_TILE: (usize, usize) = (2, 2);
-const VNNI_TILE: (usize, usize) = (3, 4);
+/// the kernel: AVX2 has 16 YMM registers (8 sums, 4 weight vectors, the broadcast, the ones
+/// and a product); AVX-512 has 32 ZMM registers (16 sums, 4 weight vectors, the
+/// broadcast). Session 7 took (2, 2) and (3, 4), half the pixels of session 5's one-plane
+/// tiles; since both planes share one quad loop, the in-process A/B of whole encodes put
+/// (1, 4) at 0.91-0.97x of (2, 2) on AVX2 ((1, 8) spills: 0.95-1.17x) and (2, 4) at
+/// 0.98-0.986x of (3, 4) on AVX-512 ((6, 2) 1.09-1.13x, (1, 4) 1.23-1.35x).
+const AVX2_TILE: (usize, usize) = (1, 4);
+const VNNI_TILE: (usize, usize) = (2, 4);
 
 /// The same for signed codes, whose vectors of channels take two sums each: (4, 1) on AVX2
 /// (8 sums), (4, 2) on AVX-512 (16 sums, 4 widened weight halves, 4 broadcasts), the U-Net's
