@@ -92,8 +92,9 @@ pub(crate) unsafe trait Int8Lanes {
         activations: Self::Integers,
         weights: Self::Integers,
     ) -> Self::Integers;
-    /// The quads of `WIDTH / 2` output channels (`2 WIDTH` bytes) widened to i16: lanes
-    /// `2k` and `2k + 1` hold weights (0, 1) and (2, 3) of the `k`-th channel.
+    /// `2 WIDTH` consecutive weights widened to i16, two a lane. For a convolution these are
+    /// the quads of `WIDTH / 2` output channels: lanes `2k` and `2k + 1` hold weights (0, 1)
+    /// and (2, 3) of the `k`-th channel; for a FiLM row, `2 WIDTH` of its columns.
     unsafe fn widen_quads(from: *const i8) -> Self::Integers;
     /// Four i16 codes (one quad) as lane pairs: (c0, c1), (c2, c3), repeated.
     unsafe fn broadcast_codes(from: *const i16) -> Self::Integers;
