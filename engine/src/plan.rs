@@ -19,6 +19,7 @@
 use crate::config::{ModelConfig, PYRAMID_LEVELS, UNET_LEVELS};
 use crate::format::ALIGN;
 use crate::frame;
+use crate::kernels::CodeRows;
 
 const FLOATS_PER_LINE: usize = ALIGN / 4;
 
@@ -270,7 +271,7 @@ impl Lengths {
         // band of output rows at a time (at least one row).
         let unet_codes = 2 * horizon * 4 * max(2 * widest, action_dim).div_ceil(4);
         // The FiLM layers' input, the activated global condition, as one row of codes.
-        let cond_codes = 2 * 4 * (config.global_cond_dim() as u64).div_ceil(4);
+        let cond_codes = 2 * CodeRows::row_stride(config.global_cond_dim()) as u64;
         let stem_patch_row = 2 * stem_width as u64 * frame::PATCH_CHANNELS as u64;
         let quantized_bytes = max(
             max(2 * trunk_activation, unet_codes),

@@ -357,6 +357,15 @@ pub(crate) fn assert_matvec_codes_lengths(
     cols
 }
 
+/// `sum_c weights[c] codes[c]` over the weights' columns, exact (i64).
+pub(crate) fn exact_row_sum(weights: &[i8], codes: &[i16]) -> i64 {
+    weights
+        .iter()
+        .zip(codes)
+        .map(|(&w, &code)| i64::from(w) * i64::from(code))
+        .sum()
+}
+
 /// What [`Kernels::matvec_int8_codes`] stores for a row's exact sum: rounded once to f32,
 /// times the input's scale, times the row's, plus the base.
 #[inline(always)]
@@ -505,12 +514,7 @@ impl Kernels for Scalar {
     ) {
         let cols = assert_matvec_codes_lengths(weight, row_scales, input, base, output.len());
         for (r, out) in output.iter_mut().enumerate() {
-            let row = &weight[r * cols..][..cols];
-            let sum: i64 = row
-                .iter()
-                .zip(input.codes)
-                .map(|(&w, &code)| i64::from(w) * i64::from(code))
-                .sum();
+            let sum = exact_row_sum(&weight[r * cols..][..cols], input.codes);
             *out = scaled_row_sum(sum, input.scale, row_scales[r], base[r]);
         }
     }

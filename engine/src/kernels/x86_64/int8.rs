@@ -55,7 +55,7 @@ use core::arch::x86_64::{
 
 use crate::kernels::scalar::{
     CodeSums, assert_code_lengths, assert_int8_lengths, assert_int8_pixel_lengths,
-    assert_matvec_codes_lengths, conv_int8_pixel, conv_int8_pixels, scaled_row_sum,
+    assert_matvec_codes_lengths, conv_int8_pixel, conv_int8_pixels, exact_row_sum, scaled_row_sum,
 };
 use crate::kernels::{
     Accumulate, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, MAX_DIGIT_CHANNELS, QUAD,
@@ -952,9 +952,7 @@ pub(crate) unsafe fn matvec_codes<L: Int8Lanes>(
             // and `codes`, in whole steps; the caller runs on `L`'s CPU.
             sum += unsafe { segment_sum::<L>(row.as_ptr(), codes.as_ptr(), start..end) };
         }
-        for (&w, &code) in row[vector_cols..].iter().zip(&codes[vector_cols..]) {
-            sum += i64::from(w) * i64::from(code);
-        }
+        sum += exact_row_sum(&row[vector_cols..], &codes[vector_cols..]);
         *out = scaled_row_sum(sum, input.scale, row_scales[r], base[r]);
     }
 }
