@@ -37,22 +37,22 @@
 //! [`Kernels::conv_int8_codes`]: crate::kernels::Kernels::conv_int8_codes
 
 use core::arch::x86_64::{
-    __m256, __m256d, __m256i, __m512, __m512d, __m512i, _MM_HINT_T0, _mm_loadu_si128, _mm_prefetch,
-    _mm256_add_epi32, _mm256_add_pd, _mm256_add_ps, _mm256_castps_pd, _mm256_castsi256_si128,
-    _mm256_cvtepi8_epi16, _mm256_cvtepi32_pd, _mm256_cvtpd_ps, _mm256_extracti128_si256,
-    _mm256_hadd_epi32, _mm256_loadu_ps, _mm256_loadu_si256, _mm256_madd_epi16,
-    _mm256_maddubs_epi16, _mm256_mul_pd, _mm256_mul_ps, _mm256_permute4x64_epi64, _mm256_set_m128,
-    _mm256_set1_epi16, _mm256_set1_epi32, _mm256_set1_epi64x, _mm256_set1_pd, _mm256_set1_ps,
-    _mm256_setzero_pd, _mm256_setzero_ps, _mm256_setzero_si256, _mm256_storeu_ps,
-    _mm256_storeu_si256, _mm512_add_epi32, _mm512_add_pd, _mm512_add_ps, _mm512_castpd_ps,
-    _mm512_castpd256_pd512, _mm512_castsi512_si256, _mm512_cvtepi8_epi16, _mm512_cvtepi32_pd,
-    _mm512_cvtpd_ps, _mm512_dpbusd_epi32, _mm512_dpwssd_epi32, _mm512_extracti64x4_epi64,
-    _mm512_insertf64x4, _mm512_loadu_ps, _mm512_loadu_si512, _mm512_mul_pd, _mm512_mul_ps,
-    _mm512_permutex2var_epi32, _mm512_set1_epi32, _mm512_set1_epi64, _mm512_set1_pd,
-    _mm512_set1_ps, _mm512_setr_epi32, _mm512_setzero_pd, _mm512_setzero_ps, _mm512_setzero_si512,
-    _mm512_storeu_ps, _mm512_storeu_si512,
+    __m256, __m256d, __m256i, __m512, __m512d, __m512i, _mm_loadu_si128, _mm256_add_epi32,
+    _mm256_add_pd, _mm256_add_ps, _mm256_castps_pd, _mm256_castsi256_si128, _mm256_cvtepi8_epi16,
+    _mm256_cvtepi32_pd, _mm256_cvtpd_ps, _mm256_extracti128_si256, _mm256_hadd_epi32,
+    _mm256_loadu_ps, _mm256_loadu_si256, _mm256_madd_epi16, _mm256_maddubs_epi16, _mm256_mul_pd,
+    _mm256_mul_ps, _mm256_permute4x64_epi64, _mm256_set_m128, _mm256_set1_epi16, _mm256_set1_epi32,
+    _mm256_set1_epi64x, _mm256_set1_pd, _mm256_set1_ps, _mm256_setzero_pd, _mm256_setzero_ps,
+    _mm256_setzero_si256, _mm256_storeu_ps, _mm256_storeu_si256, _mm512_add_epi32, _mm512_add_pd,
+    _mm512_add_ps, _mm512_castpd_ps, _mm512_castpd256_pd512, _mm512_castsi512_si256,
+    _mm512_cvtepi8_epi16, _mm512_cvtepi32_pd, _mm512_cvtpd_ps, _mm512_dpbusd_epi32,
+    _mm512_dpwssd_epi32, _mm512_extracti64x4_epi64, _mm512_insertf64x4, _mm512_loadu_ps,
+    _mm512_loadu_si512, _mm512_mul_pd, _mm512_mul_ps, _mm512_permutex2var_epi32, _mm512_set1_epi32,
+    _mm512_set1_epi64, _mm512_set1_pd, _mm512_set1_ps, _mm512_setr_epi32, _mm512_setzero_pd,
+    _mm512_setzero_ps, _mm512_setzero_si512, _mm512_storeu_ps, _mm512_storeu_si512,
 };
 
+use super::prefetch_lines;
 use crate::kernels::scalar::{
     CodeSums, assert_code_lengths, assert_int8_lengths, assert_int8_pixel_lengths,
     assert_matvec_codes_lengths, conv_int8_pixel, conv_int8_pixels, exact_row_sum, scaled_row_sum,
@@ -708,9 +708,7 @@ impl TileInput for CodeRows<'_> {
                         // apart: ask for the lines `PREFETCH_QUADS` rows ahead. A hint only
                         // (it never faults), hence the wrapping address.
                         let ahead = row.wrapping_add(PREFETCH_QUADS * quad_stride);
-                        for line in (0..V * L::WIDTH * QUAD).step_by(64) {
-                            _mm_prefetch::<_MM_HINT_T0>(ahead.wrapping_add(line).cast());
-                        }
+                        prefetch_lines(ahead, V * L::WIDTH * QUAD);
                         let halves: [(L::Integers, L::Integers); V] =
                             core::array::from_fn(|vector| {
                                 let first = row.add(vector * L::WIDTH * QUAD);
@@ -976,11 +974,7 @@ unsafe fn segment_sum<L: Int8Lanes>(
     // SAFETY (both loops): every read is `2 WIDTH` elements from a column below
     // `columns.end`, in whole steps: inside what the caller vouched for.
     while column + 4 * step <= columns.end {
-        for line in (0..4 * step).step_by(64) {
-            let ahead = weights.wrapping_add(column + line + MATVEC_PREFETCH);
-            // SAFETY: a hint only, it never faults.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(ahead.cast()) };
-        }
+        prefetch_lines(weights.wrapping_add(column + MATVEC_PREFETCH), 4 * step);
         for (k, sum) in sums.iter_mut().enumerate() {
             let at = column + k * step;
             *sum = unsafe {

@@ -129,9 +129,23 @@ mod int8;
 mod lanes;
 pub(crate) mod sequence;
 
-use core::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
+use core::arch::x86_64::{__cpuid, __cpuid_count, _MM_HINT_T0, _mm_prefetch, _xgetbv};
 
 use crate::kernels::ConvShape;
+
+/// Asks the caches for every 64-byte line of the `bytes` bytes from `start`. A hint only:
+/// it reads nothing architecturally and never faults, so `start` may point anywhere (the
+/// callers ask for lines past the end of their weights near the end of a layer), hence the
+/// wrapping address arithmetic.
+#[inline(always)]
+fn prefetch_lines<T>(start: *const T, bytes: usize) {
+    let start = start.cast::<i8>();
+    for line in (0..bytes).step_by(64) {
+        // SAFETY: `prefetcht0` has no architectural effect and never faults; SSE is part of
+        // x86-64.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(start.wrapping_add(line)) };
+    }
+}
 
 /// Where each pixel of a tile reads kernel tap `(kernel_y, kernel_x)`: `pixels` are the
 /// output positions `(out_y, out_x)` of its `N` slots, the first `count` used. The input
