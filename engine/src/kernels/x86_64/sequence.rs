@@ -226,8 +226,9 @@ unsafe fn convolve<L: Lanes>(
 
 /// Bytes ahead of the weight row being read that [`convolve_streaming`] asks the caches
 /// for. The weights are one stream in memory order, yet the hardware prefetchers alone
-/// left the f32 loop at about 8 GB/s; in-process A/B (denoise, alternating repetitions,
-/// AVX-512): 4-16 KB ahead all gave 0.70-0.76x of the loop without it, 8 KB kept.
+/// left the f32 loop at about 7 GB/s; in-process A/B (denoise, alternating repetitions,
+/// AVX-512): 4-16 KB ahead all gave 0.71-0.77x of the loop without it, 32-64 KB less,
+/// 8 KB kept (`benches/README.md`, session 10).
 const STREAMING_PREFETCH: usize = 8192;
 
 /// Bytes ahead of the columns being read that [`matvec`] asks the caches for (the f32 FiLM
