@@ -10,8 +10,6 @@
 //!
 //! The int8 convolutions of the U-Net take int8 activations: `sequence_int8`.
 
-use core::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-
 use super::lanes::{Lanes, Ymm, Zmm};
 use super::prefetch_lines;
 use crate::kernels::{Accumulate, ConvShape};
@@ -439,9 +437,7 @@ unsafe fn accumulate<L: Lanes, const VECS: usize, const START: usize, const END:
     for c in 0..in_channels {
         // The weight rows lie `out_channels` apart, one cache line each: ask for the line
         // `PREFETCH_ROWS` ahead. A hint only (it never faults), hence the wrapping address.
-        let ahead = weights.wrapping_add((c + PREFETCH_ROWS) * weight_step);
-        // SAFETY: `prefetcht0` reads nothing architecturally; SSE is part of x86-64.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>(ahead.cast()) };
+        prefetch_lines(weights.wrapping_add((c + PREFETCH_ROWS) * weight_step), 1);
         // SAFETY (this block): row `c` of the weights holds `VECS WIDTH` readable values, the
         // input row of each position `in_channels`; the caller runs on `L`'s CPU.
         let lanes: [L::Vector; VECS] = core::array::from_fn(|vec| unsafe {
