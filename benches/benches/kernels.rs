@@ -10,6 +10,7 @@ use std::time::Duration;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use scdp_engine::Backend;
 use scdp_engine::kernels::{Accumulate, ConvShape, DigitRows, Kernels, pack_int8_quads, select};
+use weights_tool::writer::AlignedBytes;
 
 /// `(name, shape)` of the distinct int8 convolutions of one panda frame.
 fn panda_trunk_layers() -> [(&'static str, ConvShape); 8] {
@@ -65,24 +66,31 @@ impl Lcg {
 fn benches(c: &mut Criterion) {
     let mut rng = Lcg(7);
     for (name, shape) in panda_trunk_layers() {
-        // Both digit planes, back to back, as the engine quantizes a ReLU output.
-        let values: Vec<i8> = (0..2 * shape.input_len())
-            .map(|_| (rng.next() % 128) as i8)
-            .collect();
+        // Both digit planes, back to back, as the engine quantizes a ReLU output, 64-byte
+        // aligned as the arena places them (a tile row across two cache lines loads several
+        // times slower on AMX).
+        let mut planes = AlignedBytes::zeroed(2 * shape.input_len());
+        for value in planes.as_mut_slice() {
+            *value = (rng.next() % 128) as u8;
+        }
+        let values: &[i8] = bytemuck::cast_slice(planes.as_slice());
         let weight: Vec<i8> = (0..shape.weight_len())
             .map(|_| ((rng.next() % 255) as i32 - 127) as i8)
             .collect();
-        let mut packed = vec![0i8; shape.int8_weight_len()];
-        pack_int8_quads(&weight, shape.in_channels, shape.out_channels, &mut packed);
+        // Aligned too, as a weights file places every tensor.
+        let mut packed_bytes = AlignedBytes::zeroed(shape.int8_weight_len());
+        let packed: &mut [i8] = bytemuck::cast_slice_mut(packed_bytes.as_mut_slice());
+        pack_int8_quads(&weight, shape.in_channels, shape.out_channels, packed);
+        let packed: &[i8] = packed;
         let weight_scales = vec![1e-3f32; shape.out_channels];
         let bias = vec![0.5f32; shape.out_channels];
         let mut output = vec![0.0f32; shape.output_len()];
-        let input = DigitRows::from_planes(&values, 0.01, true);
+        let input = DigitRows::from_planes(values, 0.01, true);
         on_every_backend(c, format!("conv_int8/{name}"), &shape, |kernels| {
             kernels.conv_int8(
                 &shape,
                 black_box(&input),
-                &packed,
+                packed,
                 &weight_scales,
                 &bias,
                 &mut output,

@@ -1186,22 +1186,34 @@ fn int8_convolution_on_matrix_tiles_is_bit_identical() {
             stride,
             padding,
         );
-        let problem = Int8Case::random(&mut rng, shape, true);
-        let initial = rng.vec(shape.output_len());
-        for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
-            let expected = problem.run(&Scalar, accumulate, &initial);
-            for (name, kernels) in &backends {
-                let found = problem.run(*kernels, accumulate, &initial);
-                let what = format!("case {case} {name} {shape:?} {accumulate:?}");
-                assert_same_bits(&found, &expected, &what);
-            }
-            // The tiles themselves, so a shape quietly sent elsewhere cannot pass for them.
-            #[cfg(target_arch = "x86_64")]
-            if let Some(amx) = Amx::detect() {
-                let found = problem.run_on_tiles(amx, accumulate, &initial);
-                let what = format!("case {case} tiles {shape:?} {accumulate:?}");
-                assert_same_bits(&found, &expected, &what);
-            }
+        check_on_tiles(&mut rng, &backends, shape, &format!("case {case}"));
+    }
+    // Rows too wide for one band of the tiles' stack buffer (75 pixels of 512 channels, three
+    // rows of them): a band is then a span of one row's columns.
+    for stride in [1, 2] {
+        let shape = ConvShape::square((3, 75, 512), 32, 3, stride, 1);
+        check_on_tiles(&mut rng, &backends, shape, "wide rows");
+    }
+}
+
+/// A random int8 convolution of `shape` on every backend and on the AMX tiles alone, bit
+/// for bit against the scalar reference, overwriting and adding.
+fn check_on_tiles(rng: &mut Lcg, backends: &[(&str, &dyn Kernels)], shape: ConvShape, case: &str) {
+    let problem = Int8Case::random(rng, shape, true);
+    let initial = rng.vec(shape.output_len());
+    for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
+        let expected = problem.run(&Scalar, accumulate, &initial);
+        for (name, kernels) in backends {
+            let found = problem.run(*kernels, accumulate, &initial);
+            let what = format!("{case} {name} {shape:?} {accumulate:?}");
+            assert_same_bits(&found, &expected, &what);
+        }
+        // The tiles themselves, so a shape quietly sent elsewhere cannot pass for them.
+        #[cfg(target_arch = "x86_64")]
+        if let Some(amx) = Amx::detect() {
+            let found = problem.run_on_tiles(amx, accumulate, &initial);
+            let what = format!("{case} tiles {shape:?} {accumulate:?}");
+            assert_same_bits(&found, &expected, &what);
         }
     }
 }

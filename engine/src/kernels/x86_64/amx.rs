@@ -1,29 +1,24 @@
 //! Intel AMX: the int8 convolution of the trunk on the tile matrix unit (`tdpbusd`), every
 //! other kernel from [`Avx512`].
 //!
-//! One `tdpbusd` multiplies a 16 x 64 tile of u8 activations (16 output pixels, 64 input
-//! channels) by a 16 x 64 tile of i8 weights (16 input-channel quads, 16 output channels)
-//! into 16 x 16 exact i32 sums: 16,384 products where `vpdpbusd` does 64. A block is 16
-//! pixels x 32 channels: the two activation tiles are the pixels' high and low digits, the
-//! two weight tiles 16 channels each, and the four sum tiles one per digit and weight tile,
-//! all eight tile registers. The contract's sums are exact over the whole kernel and the
-//! input has one scale, so the sum tiles run across taps and input channels alike: they
-//! are stored once per block and run of taps, and each pixel's `128 high + low` formed,
-//! rounded and scaled then (same bits as the scalar reference, tested on every backend).
+//! One `tdpbusd` multiplies a 16 x 64 tile of u8 activations (16 output positions, 64
+//! input channels) by a 16 x 64 tile of i8 weights (16 input-channel quads, 16 output
+//! channels) into 16 x 16 exact i32 sums: 16,384 products where `vpdpbusd` does 64. A block
+//! is 16 positions x 32 channels: the two activation tiles are the positions' high and low
+//! digits, the two weight tiles 16 channels each, and the four sum tiles one per digit and
+//! weight tile, all eight tile registers. The contract's sums are exact over the whole
+//! kernel and the input has one scale, so the sum tiles run across taps and input channels
+//! alike and are stored once per block, each pixel's `128 high + low` formed, rounded and
+//! scaled then (same bits as the scalar reference, tested on every backend).
 //!
-//! Channel blocks are the outer loop; inside one, a group of 128 pixels parks its exact
-//! sums on the stack (32 KB) between runs of taps, and a run's weights for the block are
-//! copied once into tile order ([`PackedRun`], at most 36 KB: every tap of layer1 and
-//! layer2, two of layer4) for the group's eight blocks. The kernel uses about 72 KB of stack.
-//!
-//! An activation tile is loaded straight from the input when its 16 pixels read input rows
-//! equally spaced (`tileloadd` takes a row stride: the inside of a map, stride 1 or 2);
-//! otherwise (padding, a tile wrapping onto the next output row, the short last tile) its
-//! rows are gathered into a scratch tile, zero where a pixel reads nothing (the padding's
-//! zero codes). Input channels need only be whole quads: a last 64-channel step only
-//! partly filled (the stem's 196-byte patches: 3 x 64 + 4) is gathered with masked loads,
-//! zero past the last channel, against weight tiles whose rows past the last quad are
-//! zero.
+//! On this project's machines a `tileloadd` whose rows are not 64-byte aligned, or that
+//! a tile gathered through vector stores just before, costs several `tdpbusd`s, and the
+//! unit cannot hide more than about one load per multiplication. So every tile is loaded
+//! straight from aligned memory: the input is copied a band at a time into a stack buffer
+//! with its zero padding and each pixel padded to whole 64-channel steps ([`Band`]), laid
+//! out so that any 16 consecutive positions read 16 equally spaced pixels at every tap;
+//! the weight tiles are read in place from the file's layout ([`int8_quad_index`]: 64-byte
+//! rows of 16 channels).
 //!
 //! Linux hands out the tile registers on request only (`arch_prctl(ARCH_REQ_XCOMP_PERM)`);
 //! without an OS (`target_os = "none"`) the firmware that set XCR0 has enabled them.
@@ -31,12 +26,15 @@
 use core::arch::asm;
 use core::arch::x86_64::{
     _mm512_add_epi32, _mm512_add_ps, _mm512_cvtepi32_ps, _mm512_load_si512, _mm512_loadu_ps,
-    _mm512_loadu_si512, _mm512_maskz_loadu_epi8, _mm512_mul_ps, _mm512_set1_ps,
-    _mm512_setzero_si512, _mm512_slli_epi32, _mm512_store_si512, _mm512_storeu_ps,
+    _mm512_maskz_loadu_epi8, _mm512_mul_ps, _mm512_set1_ps, _mm512_slli_epi32, _mm512_store_si512,
+    _mm512_storeu_ps,
 };
+use core::mem::MaybeUninit;
 
 use super::avx512::Avx512;
-use super::int8::{PixelTile, exact_digits_zmm, round_zmm, tap_rows};
+use super::int8::{exact_digits_zmm, round_zmm};
+#[cfg(doc)]
+use crate::kernels::int8_quad_index;
 use crate::kernels::ops::{Activation, DIGIT_BASE};
 use crate::kernels::scalar::assert_int8_lengths;
 use crate::kernels::{
@@ -71,13 +69,23 @@ static INSTANCE: Amx = Amx {
 impl Amx {
     /// Whether [`Kernels::conv_int8`] runs on the tiles here: activations readable as u8,
     /// whole input-channel quads up to [`MAX_IN_CHANNELS`] (a last partial 64-channel step
-    /// is gathered, zero-padded), whole 32-channel blocks (other shapes go to [`Avx512`]).
-    /// Every int8 layer of the model qualifies, the stem's 196-byte patches included.
+    /// is zero-padded, for kernels of up to [`MAX_PARTIAL_TAPS`] taps), whole 32-channel
+    /// blocks, and a band of at least one output pixel fits the stack buffer (other shapes
+    /// go to [`Avx512`]). Every int8 layer of the model qualifies, the stem's 196-byte
+    /// patches included.
     pub fn covers(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
-        input.nonnegative
+        Self::band(shape, input).is_some()
+    }
+
+    fn band(shape: &ConvShape, input: &DigitRows<'_>) -> Option<Band> {
+        let partial_fits = shape.in_channels.is_multiple_of(CHANNELS_PER_STEP)
+            || shape.kernel_height * shape.kernel_width <= MAX_PARTIAL_TAPS;
+        let applies = input.nonnegative
             && shape.in_channels.is_multiple_of(QUAD)
             && step_channels(shape.in_channels) <= MAX_IN_CHANNELS
             && shape.out_channels.is_multiple_of(BLOCK_CHANNELS)
+            && partial_fits;
+        if applies { Band::plan(shape) } else { None }
     }
 
     /// [`Kernels::conv_int8`] on the tiles; `false`, with nothing written, when they do not
@@ -93,14 +101,14 @@ impl Amx {
         output: &mut [f32],
         accumulate: Accumulate,
     ) -> bool {
-        if !Self::covers(shape, input) {
+        let Some(band) = Self::band(shape, input) else {
             return false;
-        }
+        };
         let parameters = (weight, weight_scales, bias);
         assert_int8_lengths(shape, input, parameters, output.len());
         // SAFETY: `self` exists only once AMX, AVX-512 and the permission were detected;
-        // the lengths were asserted and `covers` checked just above.
-        unsafe { conv(shape, input, parameters, output, accumulate) };
+        // the lengths were asserted and the band planned just above.
+        unsafe { conv(shape, input, parameters, output, accumulate, band) };
         true
     }
 
@@ -194,333 +202,406 @@ struct TileBuffer([u8; ROWS * ROW_BYTES]);
 /// Input channels an activation tile row can hold at most (the widest ResNet-18 layer).
 const MAX_IN_CHANNELS: usize = 512;
 
-/// `in_channels` rounded up to whole 64-channel steps: what a tap's packed weights cover
-/// (the channels past `in_channels` with zero weights).
+/// `in_channels` rounded up to whole 64-channel steps: the bytes a pixel takes in a band
+/// (the channels past `in_channels` zero).
 const fn step_channels(in_channels: usize) -> usize {
     in_channels.next_multiple_of(CHANNELS_PER_STEP)
 }
-/// Bytes of packed weights a run of taps takes at most: all nine taps of a 3x3 layer up to
-/// 128 input channels (36 KB, ResNet-18's layer1 and layer2), two taps of the widest.
-const RUN_BYTES: usize = 9 * 128 * BLOCK_CHANNELS;
-const _: () = assert!(RUN_BYTES >= MAX_IN_CHANNELS * BLOCK_CHANNELS);
-// A block's quads are `quad_stride` apart only inside one block of the weight layout.
-const _: () = assert!(crate::kernels::INT8_CHANNEL_BLOCK.is_multiple_of(BLOCK_CHANNELS));
-/// Blocks of pixels whose sums are parked on the stack between runs of taps: the weights
-/// of a run are packed once for all of them.
-const GROUP_BLOCKS: usize = 8;
-const GROUP_PIXELS: usize = GROUP_BLOCKS * BLOCK_PIXELS;
 
-/// The input rows a whole block of pixels on one output row (`origin`: where its first
-/// pixel's tap (0, 0) lies) reads at a kernel tap, as a first row and a row step, when all
-/// are inside the input: found in a few operations, where [`tap_rows`] takes one per pixel.
-fn line_source(
-    shape: &ConvShape,
-    (top, left): (isize, isize),
-    (kernel_y, kernel_x): (usize, usize),
-) -> Option<(usize, usize)> {
-    let in_y = top + kernel_y as isize;
-    let first_x = left + kernel_x as isize;
-    let last_x = first_x + ((BLOCK_PIXELS - 1) * shape.stride) as isize;
-    let inside = (0..shape.in_height as isize).contains(&in_y)
-        && first_x >= 0
-        && last_x < shape.in_width as isize;
-    inside.then(|| {
-        (
-            in_y as usize * shape.in_width + first_x as usize,
-            shape.stride,
-        )
-    })
+/// Bytes of the stack buffer a band of the input (both digit planes, padded) is copied
+/// into: a whole panda layer4 input (10 x 12 padded pixels of 512 channels, 120 KB), so its
+/// 2.4 MB of weights stream through once.
+const BAND_BYTES: usize = 128 * 1024;
+
+/// Kernel taps whose weights a partly filled last 64-channel step can have packed (with
+/// zero rows past the last quad) for one block: the stem's patches have one, a 3x3 kernel
+/// nine.
+const MAX_PARTIAL_TAPS: usize = 9;
+
+/// Where the tiles of one band read.
+///
+/// A band is `rows` x `columns` output pixels. Its input is copied, zero padding included,
+/// into `phases` images per digit plane (`stride` of them, fewer for a kernel shorter than
+/// the stride): image `r` holds the padded input rows `band_top * stride + j * stride + r`,
+/// `grid * stride` pixels each, every pixel `pitch` bytes (whole 64-channel steps). An
+/// output pixel is a position `q = row * grid + column` of the band, and at kernel tap
+/// `(ky, kx)` it reads pixel `stride * q + (ky / stride) * grid * stride + kx` of image
+/// `ky % stride`: 16 consecutive positions read 16 pixels `stride * pitch` bytes apart,
+/// one `tileloadd` whatever the padding and wherever a row of the map ends. The positions
+/// `column >= columns` are computed and dropped (one or two a row: the padding columns).
+#[derive(Clone, Copy, Debug)]
+struct Band {
+    rows: usize,
+    columns: usize,
+    stride: usize,
+    grid: usize,
+    phases: usize,
+    /// Image rows copied: the band's rows and the kernel's reach below them.
+    image_rows: usize,
+    /// Pixels of each image: its rows and the slack the last tile of positions reads past
+    /// them (zero).
+    image_pixels: usize,
+    pitch: usize,
+    /// Tiles of 16 positions covering `rows * grid`.
+    tiles: usize,
 }
 
-/// The 16 rows a direct source `(first row, row step)` reads, for a gathered tile.
-fn line_rows(first: usize, step: usize) -> [Option<usize>; BLOCK_PIXELS] {
-    let mut rows = [None; BLOCK_PIXELS];
-    for (pixel, row) in rows.iter_mut().enumerate() {
-        *row = Some(first + pixel * step);
+impl Band {
+    fn new(shape: &ConvShape, rows: usize, columns: usize) -> Self {
+        let stride = shape.stride;
+        let grid = ((columns - 1) * stride + shape.kernel_width).div_ceil(stride);
+        let below = (shape.kernel_height - 1) / stride;
+        let tiles = (rows * grid).div_ceil(BLOCK_PIXELS);
+        let last_read = stride * (tiles * BLOCK_PIXELS - 1) + below * grid * stride;
+        let image_rows = rows + below;
+        Band {
+            rows,
+            columns,
+            stride,
+            grid,
+            phases: stride.min(shape.kernel_height),
+            image_rows,
+            image_pixels: (last_read + shape.kernel_width).max(image_rows * grid * stride),
+            pitch: step_channels(shape.in_channels),
+            tiles,
+        }
     }
-    rows
+
+    const fn image_bytes(&self) -> usize {
+        self.image_pixels * self.pitch
+    }
+
+    const fn bytes(&self) -> usize {
+        2 * self.phases * self.image_bytes()
+    }
+
+    /// The largest band of whole output rows that fits [`BAND_BYTES`] (spread evenly over
+    /// the map), or of part of one row; `None` when not even one output pixel fits.
+    fn plan(shape: &ConvShape) -> Option<Band> {
+        let (out_height, out_width) = (shape.out_height(), shape.out_width());
+        let fits = |rows, columns| Band::new(shape, rows, columns).bytes() <= BAND_BYTES;
+        if out_height == 0 || out_width == 0 {
+            return None;
+        }
+        if !fits(1, out_width) {
+            let columns = (1..out_width).rev().find(|&columns| fits(1, columns))?;
+            return Some(Band::new(shape, 1, columns));
+        }
+        // The bytes grow with the rows: the most rows that fit, by bisection.
+        let (mut fitting, mut too_many) = (1, out_height + 1);
+        while too_many - fitting > 1 {
+            let rows = (fitting + too_many) / 2;
+            if fits(rows, out_width) {
+                fitting = rows;
+            } else {
+                too_many = rows;
+            }
+        }
+        let rows = out_height.div_ceil(out_height.div_ceil(fitting));
+        Some(Band::new(shape, rows, out_width))
+    }
 }
 
-/// Where an activation tile comes from at one tap: straight from the input (first row and
-/// row step, in input rows) when its 16 pixels read equally spaced rows, else gathered.
-fn direct_source(rows: &[Option<usize>]) -> Option<(usize, usize)> {
-    let first = rows[0]?;
-    let second = rows[1]?;
-    let step = second.checked_sub(first)?;
-    rows.iter()
-        .enumerate()
-        .all(|(index, row)| *row == Some(first + index * step))
-        .then_some((first, step))
-}
+/// The convolution's slices, as [`Kernels::conv_int8`] takes them.
+type Parameters<'p> = (&'p [i8], &'p [f32], &'p [f32]);
 
-/// A run of taps' weights for one block of 32 output channels, as the weight tiles read
-/// them: per tap and 64-channel step, two tiles of 16 quads x 16 channels, each 1 KB
-/// contiguous. Read in place, a weight tile's rows lie `4 out_channels` bytes apart, a
-/// power of two that puts them in a few cache sets (two of L1's; too few of L2's to hold
-/// layer4's block).
-#[repr(C, align(64))]
-struct PackedRun([u8; RUN_BYTES]);
-
-/// The exact sums of one block: the high digits' for channels 0-15 and 16-31 of the block,
-/// then the low digits', as the sum tiles `tmm0`-`tmm3` hold them.
+/// The sum tiles of one block: the high digits' for channels 0-15 and 16-31 of the block,
+/// then the low digits', as `tmm0`-`tmm3` hold them.
 type BlockSums = [TileBuffer; 4];
 
-/// The whole convolution on tiles.
-///
-/// Per block of 16 pixels x 32 channels the sum tiles run over every tap and input channel
-/// (the contract's sums are exact over the whole kernel), so they are stored once per run
-/// of taps whose packed weights fit [`RUN_BYTES`] (once per block for most layers), not
-/// once per tap.
+/// A band of the input, as [`Band`] lays it out: the high plane's images, then the low's.
+#[repr(C, align(64))]
+struct BandBuffer([MaybeUninit<u8>; BAND_BYTES]);
+
+/// The whole convolution on tiles, a band of output pixels at a time: the band's input is
+/// copied into `band` with its padding, then every block of 32 output channels runs over
+/// it, 16 positions at a time; the four sum tiles run across every tap and input channel
+/// (the contract's sums are exact over the whole kernel) and are stored once per 16
+/// positions. The weight tiles are read where the file keeps them (16 quads of 16 channels,
+/// 64-byte rows [`int8_quad_stride`] apart), except a partly filled last step's, which are
+/// packed with zero rows past the last quad.
 ///
 /// # Safety
 /// The CPU supports AVX-512F/BW, AMX-TILE and AMX-INT8 and this thread may use the tile
-/// state; the slice lengths are those [`assert_int8_lengths`] checks; [`Amx::covers`] holds.
+/// state; the slice lengths are those [`assert_int8_lengths`] checks; [`Amx::covers`] holds
+/// and `plan` is [`Band::plan`]'s.
 #[target_feature(enable = "avx512f,avx512bw")]
 unsafe fn conv(
     shape: &ConvShape,
     input: &DigitRows<'_>,
-    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
+    (weight, weight_scales, bias): Parameters<'_>,
     output: &mut [f32],
     accumulate: Accumulate,
+    plan: Band,
 ) {
-    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
-    let positions = shape.out_height() * shape.out_width();
+    let (out_height, out_width) = (shape.out_height(), shape.out_width());
     let taps = shape.kernel_height * shape.kernel_width;
-    let tap_bytes = step_channels(in_channels) * BLOCK_CHANNELS;
-    let run_taps = (RUN_BYTES / tap_bytes).min(taps);
-    let i32_exact = taps * in_channels <= MAX_DIGIT_CHANNELS;
-    let mut packed = PackedRun([0; RUN_BYTES]);
-    let mut gathered = [TileBuffer([0; ROWS * ROW_BYTES]); 2];
-    let mut sums = [[TileBuffer([0; ROWS * ROW_BYTES]); 4]; GROUP_BLOCKS];
+    let i32_exact = taps * shape.in_channels <= MAX_DIGIT_CHANNELS;
+    let partial = !shape.in_channels.is_multiple_of(CHANNELS_PER_STEP);
+    let mut band = BandBuffer([MaybeUninit::uninit(); BAND_BYTES]);
+    let mut packed = [TileBuffer([0; ROWS * ROW_BYTES]); 2 * MAX_PARTIAL_TAPS];
+    // Two sets: one block's sums are written out while the tiles compute the next.
+    let mut sums = [[TileBuffer([0; ROWS * ROW_BYTES]); 4]; 2];
+    let mut pending: Option<Pending> = None;
+    let epilogue = Epilogue {
+        i32_exact,
+        scale: input.scale,
+        parameters: (weight_scales, bias),
+        out_channels: shape.out_channels,
+        out_width,
+        accumulate,
+    };
     // SAFETY: the caller vouches for AMX and the permission; the configuration is a valid
     // palette-1 layout (64 aligned bytes).
     unsafe { asm!("ldtilecfg [{}]", in(reg) TILE_CONFIG.0.as_ptr(), options(nostack)) };
-    for channel in (0..out_channels).step_by(BLOCK_CHANNELS) {
-        let single_run = run_taps == taps;
-        // SAFETY (both): AVX-512F; the run's taps are inside the kernel and their quads of
-        // the block's 32 channels inside `weight` (lengths asserted by the caller).
-        if single_run {
-            unsafe { pack_run(shape, weight, (channel, 0..taps), &mut packed) };
-        }
-        for group in (0..positions).step_by(GROUP_PIXELS) {
-            let group_count = (positions - group).min(GROUP_PIXELS);
-            // Worked out once per group, not once per tap (a division per pixel).
-            let origins = PixelTile::<GROUP_PIXELS>::new(shape, group, group_count).origins;
-            for first_tap in (0..taps).step_by(run_taps) {
-                let run = first_tap..(first_tap + run_taps).min(taps);
-                if !single_run {
-                    unsafe { pack_run(shape, weight, (channel, run.clone()), &mut packed) };
+    for top in (0..out_height).step_by(plan.rows) {
+        for left in (0..out_width).step_by(plan.columns) {
+            let rows = plan.rows.min(out_height - top);
+            let geometry = Band::new(shape, rows, plan.columns.min(out_width - left));
+            // SAFETY: AVX-512F; `geometry` is no larger than `plan`, which fits the buffer.
+            unsafe { fill_band(shape, input, &geometry, (top, left), &mut band) };
+            for channel in (0..shape.out_channels).step_by(BLOCK_CHANNELS) {
+                if partial {
+                    // SAFETY: the block's channels and every tap are inside `weight`.
+                    unsafe { pack_partial_step(shape, weight, channel, &mut packed) };
                 }
-                for block in (0..group_count).step_by(BLOCK_PIXELS) {
-                    let count = (group_count - block).min(BLOCK_PIXELS);
-                    let sums = &mut sums[block / BLOCK_PIXELS];
-                    // SAFETY: the caller's promises; the packed run holds `run`'s taps.
+                for tile in 0..geometry.tiles {
+                    let first = tile * BLOCK_PIXELS;
+                    // SAFETY: the band holds every pixel the tile reads (`Band`); the block's
+                    // weights are inside `weight`.
                     unsafe {
-                        run_sums(
-                            shape,
-                            input,
-                            &packed,
-                            (&origins[block..], count),
-                            (run.clone(), first_tap == 0),
-                            &mut gathered,
-                            sums,
-                        )
+                        tile_sums(shape, &geometry, &band, (weight, channel), &packed, first)
                     };
+                    // The previous block's sums go out while the matrix unit works.
+                    let set = match pending.take() {
+                        Some(previous) => {
+                            // SAFETY: AVX-512F; `previous` names pixels of the output.
+                            unsafe { epilogue.write(&sums[previous.set], &previous, output) };
+                            1 - previous.set
+                        }
+                        None => 0,
+                    };
+                    // SAFETY: tiles configured above.
+                    unsafe { store_sums(&mut sums[set]) };
+                    pending = Some(Pending {
+                        set,
+                        channel,
+                        first,
+                        band: geometry,
+                        origin: (top, left),
+                    });
                 }
             }
-            let parameters = (&weight_scales[channel..], &bias[channel..]);
-            for block in (0..group_count).step_by(BLOCK_PIXELS) {
-                let count = (group_count - block).min(BLOCK_PIXELS);
-                let pixel = group + block;
-                let out = &mut output[pixel * out_channels + channel..];
-                // SAFETY: AVX-512F; the block's channels are inside the output and
-                // parameters.
-                unsafe {
-                    store(
-                        &sums[block / BLOCK_PIXELS],
-                        (count, i32_exact),
-                        input.scale,
-                        parameters,
-                        (out, out_channels),
-                        accumulate,
-                    )
-                };
-            }
         }
+    }
+    if let Some(last) = pending {
+        // SAFETY: AVX-512F; `last` names pixels of the output.
+        unsafe { epilogue.write(&sums[last.set], &last, output) };
     }
     // SAFETY: as for `ldtilecfg`; releasing lets the OS skip saving 8 KB of tile data.
     unsafe { asm!("tilerelease", options(nostack, nomem)) };
 }
 
-/// Copies the quads of 32 channels from `channel` of the taps `run` into tile order in
-/// `packed`, tap after tap.
+/// Copies the input pixels band `geometry` at output pixel `(top, left)` reads into
+/// `band`, both digit planes, zero where they lie in the padding, past `in_channels` and
+/// in the slack after each image.
 ///
 /// # Safety
-/// AVX-512F; the taps are inside the kernel and hold the block's channels; the run's
-/// packed weights fit [`RUN_BYTES`].
+/// AVX-512F; `geometry` fits [`BAND_BYTES`]; the planes hold `shape.input_len()` values.
 #[inline(always)]
-unsafe fn pack_run(
-    shape: &ConvShape,
-    weight: &[i8],
-    (channel, run): (usize, core::ops::Range<usize>),
-    packed: &mut PackedRun,
-) {
-    let tap_bytes = step_channels(shape.in_channels) * BLOCK_CHANNELS;
-    let quad_stride = int8_quad_stride(shape.out_channels, channel);
-    for (index, tap) in run.enumerate() {
-        let first_quad = shape.int8_index(tap, 0, channel);
-        let to = &mut packed.0[index * tap_bytes..][..tap_bytes];
-        // SAFETY: the caller's promises.
-        unsafe { pack_tap(shape, (&weight[first_quad..], quad_stride), to) };
-    }
-}
-
-/// Copies one tap's quads of 32 channels (`weights` from quad 0 of the block's first
-/// channel) into tile order in `packed` (`step_channels(in_channels) * 32` bytes), zero
-/// quads past `in_channels`.
-///
-/// # Safety
-/// AVX-512F; `weights` holds the tap's `in_channels / 4` quads of the block's channels,
-/// `quad_stride` bytes apart.
-#[inline(always)]
-unsafe fn pack_tap(shape: &ConvShape, (weights, quad_stride): (&[i8], usize), packed: &mut [u8]) {
-    let quads = shape.in_channels / QUAD;
-    // A partial last step: its weight tiles' rows past the last quad stay zero.
-    if !quads.is_multiple_of(ROWS) {
-        packed.fill(0);
-    }
-    for quad in 0..quads {
-        let (step, row) = (quad / ROWS, quad % ROWS);
-        for tile in 0..2 {
-            let from = quad * quad_stride + tile * SUM_COLUMNS * QUAD;
-            let to = ((2 * step + tile) * ROWS + row) * ROW_BYTES;
-            // SAFETY: the caller's promise for `from`; `to` is a 64-byte row of `packed`,
-            // which holds `2 in_channels / 64` tiles, aligned as `PackedRun` is (every tap
-            // starts at a multiple of 2 KB).
-            unsafe {
-                let bytes = _mm512_loadu_si512(weights[from..][..ROW_BYTES].as_ptr().cast());
-                _mm512_store_si512(packed[to..][..ROW_BYTES].as_mut_ptr().cast(), bytes);
-            }
-        }
-    }
-}
-
-/// Adds one run of taps to a block's exact sums (`sums`, tile order): starts them at zero
-/// when `first`, else from what the previous run stored.
-///
-/// # Safety
-/// As for [`conv`]; `packed` holds the run's taps; `origins` holds the block's `count`
-/// pixels.
-#[inline(always)]
-unsafe fn run_sums(
+unsafe fn fill_band(
     shape: &ConvShape,
     input: &DigitRows<'_>,
-    packed: &PackedRun,
-    (origins, count): (&[(isize, isize)], usize),
-    (run, first): (core::ops::Range<usize>, bool),
-    gathered: &mut [TileBuffer; 2],
-    sums: &mut BlockSums,
+    geometry: &Band,
+    (top, left): (usize, usize),
+    band: &mut BandBuffer,
 ) {
-    let in_channels = shape.in_channels;
-    let planes = [input.high, input.low];
-    let [s0, s1, s2, s3] = sums;
-    let pointers = [s0, s1, s2, s3].map(|buffer| buffer.0.as_mut_ptr());
-    // SAFETY: tiles are configured (caller); each buffer is 16 rows of 64 bytes.
-    unsafe {
-        if first {
-            asm!(
-                "tilezero tmm0",
-                "tilezero tmm1",
-                "tilezero tmm2",
-                "tilezero tmm3",
-                options(nostack, nomem)
-            );
-        } else {
-            asm!(
-                "tileloadd tmm0, [{s0} + {stride}]",
-                "tileloadd tmm1, [{s1} + {stride}]",
-                "tileloadd tmm2, [{s2} + {stride}]",
-                "tileloadd tmm3, [{s3} + {stride}]",
-                s0 = in(reg) pointers[0],
-                s1 = in(reg) pointers[1],
-                s2 = in(reg) pointers[2],
-                s3 = in(reg) pointers[3],
-                stride = in(reg) ROW_BYTES,
-                options(nostack, readonly, preserves_flags)
-            );
-        }
-    }
-    let tap_bytes = step_channels(in_channels) * BLOCK_CHANNELS;
-    // A whole block on one output row: most taps read a line of the input.
-    let line = (count == BLOCK_PIXELS && origins[0].0 == origins[BLOCK_PIXELS - 1].0)
-        .then_some(origins[0]);
-    for (index, tap) in run.clone().enumerate() {
-        let kernel = (tap / shape.kernel_width, tap % shape.kernel_width);
-        let (direct, rows) = match line.and_then(|origin| line_source(shape, origin, kernel)) {
-            Some(direct) => (Some(direct), [None; BLOCK_PIXELS]),
-            None => {
-                let rows = tap_rows(shape, origins, count, kernel);
-                if rows.iter().all(Option::is_none) {
+    let (in_height, in_width, in_channels) = (shape.in_height, shape.in_width, shape.in_channels);
+    let pitch = geometry.pitch;
+    let row_pixels = geometry.grid * geometry.stride;
+    // The band's columns that read the input: padded column `left * stride + c` is input
+    // column `left * stride + c - padding_width`.
+    let shift = (left * geometry.stride) as isize - shape.padding_width as isize;
+    let first = (-shift).clamp(0, row_pixels as isize) as usize;
+    let end = (in_width as isize - shift).clamp(first as isize, row_pixels as isize) as usize;
+    let base = band.0.as_mut_ptr().cast::<u8>();
+    for (plane_index, plane) in [input.high, input.low].into_iter().enumerate() {
+        for phase in 0..geometry.phases {
+            let image_index = plane_index * geometry.phases + phase;
+            // SAFETY: the images lie inside the buffer (`geometry.bytes() <= BAND_BYTES`).
+            let image = unsafe { base.add(image_index * geometry.image_bytes()) };
+            for image_row in 0..geometry.image_rows {
+                let padded_row = (top + image_row) * geometry.stride + phase;
+                let in_row = padded_row as isize - shape.padding_height as isize;
+                // SAFETY: the row lies inside the image.
+                let to = unsafe { image.add(image_row * row_pixels * pitch) };
+                if !(0..in_height as isize).contains(&in_row) || first == end {
+                    // SAFETY: as above.
+                    unsafe { to.write_bytes(0, row_pixels * pitch) };
                     continue;
                 }
-                (direct_source(&rows), rows)
-            }
-        };
-        for step in 0..in_channels / CHANNELS_PER_STEP {
-            let first_channel = step * CHANNELS_PER_STEP;
-            let mut sources = [(core::ptr::null::<i8>(), 0usize); 2];
-            for (digit, plane) in planes.iter().enumerate() {
-                sources[digit] = match direct {
-                    Some((row, row_step)) => (
-                        plane[row * in_channels + first_channel..].as_ptr(),
-                        row_step * in_channels,
-                    ),
-                    None => {
-                        let buffer = &mut gathered[digit];
-                        // SAFETY: AVX-512F; each `Some` row holds `in_channels` values, so
-                        // its 64 from `first_channel` are readable; the buffer holds 16
-                        // rows of 64.
-                        unsafe { gather(plane, in_channels, first_channel, &rows, buffer) };
-                        (buffer.0.as_ptr().cast::<i8>(), ROW_BYTES)
-                    }
-                };
-            }
-            let weights = &packed.0[index * tap_bytes + 2 * step * ROWS * ROW_BYTES..];
-            // SAFETY: the activation sources cover 16 rows of 64 bytes at their strides
-            // (direct rows are input rows; the gathered buffers are 16 x 64); the step's two
-            // weight tiles are 2 KB of `packed`.
-            unsafe { multiply_step(sources, weights[..2 * ROWS * ROW_BYTES].as_ptr()) };
-        }
-        // A last step only partly filled (the stem's patches: 196 = 3 x 64 + 4): its rows
-        // are gathered, zero past the last channel, direct or not.
-        let width = in_channels % CHANNELS_PER_STEP;
-        if width != 0 {
-            let first_channel = in_channels - width;
-            let direct_rows;
-            let rows = match direct {
-                Some((row, row_step)) => {
-                    direct_rows = line_rows(row, row_step);
-                    &direct_rows
+                let from =
+                    (in_row as usize * in_width + (first as isize + shift) as usize) * in_channels;
+                let from = &plane[from..][..(end - first) * in_channels];
+                // SAFETY: the row lies inside the image; `from` holds the inside pixels.
+                unsafe {
+                    to.write_bytes(0, first * pitch);
+                    copy_pixels(from, in_channels, to.add(first * pitch), pitch);
+                    to.add(end * pitch)
+                        .write_bytes(0, (row_pixels - end) * pitch);
                 }
-                None => &rows,
-            };
-            let mut sources = [(core::ptr::null::<i8>(), 0usize); 2];
-            for (digit, plane) in planes.iter().enumerate() {
-                let buffer = &mut gathered[digit];
-                let channels = (in_channels, first_channel, width);
-                // SAFETY: AVX-512F/BW (`Amx::detect`); each `Some` row holds `in_channels`
-                // values (a direct source's 16 rows are inside the input), so the step's
-                // `width` from `first_channel` are readable; the buffer holds 16 rows of 64.
-                unsafe { gather_partial(plane, channels, rows, buffer) };
-                sources[digit] = (buffer.0.as_ptr().cast::<i8>(), ROW_BYTES);
             }
-            let step = in_channels / CHANNELS_PER_STEP;
-            let weights = &packed.0[index * tap_bytes + 2 * step * ROWS * ROW_BYTES..];
-            // SAFETY: the gathered buffers are 16 x 64; the step's two weight tiles are 2 KB
-            // of `packed` (a tap's packed weights cover `step_channels(in_channels)`).
-            unsafe { multiply_step(sources, weights[..2 * ROWS * ROW_BYTES].as_ptr()) };
+            let copied = geometry.image_rows * row_pixels * pitch;
+            // SAFETY: the slack lies inside the image.
+            unsafe {
+                image
+                    .add(copied)
+                    .write_bytes(0, geometry.image_bytes() - copied)
+            };
         }
     }
+}
+
+/// Copies pixels of `in_channels` bytes to `pitch` bytes apart at `to`, zero past
+/// `in_channels`.
+///
+/// # Safety
+/// AVX-512F/BW; `to` is 64-byte aligned and writable for `from.len() / in_channels * pitch`
+/// bytes; `pitch` is a multiple of 64 and at least `in_channels`.
+#[inline(always)]
+unsafe fn copy_pixels(from: &[i8], in_channels: usize, to: *mut u8, pitch: usize) {
+    if pitch == in_channels {
+        // SAFETY: the caller's promise; `from` is a slice of as many bytes.
+        unsafe { core::ptr::copy_nonoverlapping(from.as_ptr().cast(), to, from.len()) };
+        return;
+    }
+    for (pixel, values) in from.chunks_exact(in_channels).enumerate() {
+        for step in (0..pitch).step_by(ROW_BYTES) {
+            let width = in_channels.saturating_sub(step).min(ROW_BYTES);
+            // Masked bytes are neither read nor able to fault; they load as zero.
+            let mask = u64::MAX
+                .checked_shr((ROW_BYTES - width) as u32)
+                .unwrap_or(0);
+            // SAFETY: AVX-512F/BW; the mask keeps the load inside the pixel's values; the
+            // store is 64 aligned bytes of the caller's buffer.
+            unsafe {
+                let bytes =
+                    _mm512_maskz_loadu_epi8(mask, values.as_ptr().add(step.min(in_channels)));
+                _mm512_store_si512(to.add(pixel * pitch + step).cast(), bytes);
+            }
+        }
+    }
+}
+
+/// Packs the weight tiles of a partly filled last 64-channel step, for the 32 channels
+/// from `channel` and every tap: two tiles a tap, rows past the last quad zero (read in
+/// place they would run into the next tap's quads, or past the kernel's end).
+///
+/// # Safety
+/// AVX-512F; the kernel has at most [`MAX_PARTIAL_TAPS`] taps and holds the block's channels.
+#[inline(always)]
+unsafe fn pack_partial_step(
+    shape: &ConvShape,
+    weight: &[i8],
+    channel: usize,
+    packed: &mut [TileBuffer; 2 * MAX_PARTIAL_TAPS],
+) {
+    let taps = shape.kernel_height * shape.kernel_width;
+    let first_quad = shape.in_channels / CHANNELS_PER_STEP * ROWS;
+    let quads = shape.in_channels / QUAD - first_quad;
+    for tap in 0..taps {
+        for (tile, buffer) in packed[2 * tap..2 * tap + 2].iter_mut().enumerate() {
+            let channels = channel + tile * SUM_COLUMNS;
+            for row in 0..ROWS {
+                let to = &mut buffer.0[row * ROW_BYTES..][..ROW_BYTES];
+                if row < quads {
+                    let from = shape.int8_index(tap, (first_quad + row) * QUAD, channels);
+                    to.copy_from_slice(bytemuck::cast_slice(&weight[from..][..ROW_BYTES]));
+                } else {
+                    to.fill(0);
+                }
+            }
+        }
+    }
+}
+
+/// The exact sums of 16 positions from `first` of `geometry`'s band over every tap and
+/// input channel, for the 32 channels from `channel`, into `tmm0`-`tmm3`.
+///
+/// # Safety
+/// Tiles configured as [`TILE_CONFIG`] says; the band was filled for `geometry`; the block's
+/// channels are inside `weight`; `packed` holds the partial step's tiles when there is one.
+#[inline(always)]
+unsafe fn tile_sums(
+    shape: &ConvShape,
+    geometry: &Band,
+    band: &BandBuffer,
+    (weight, channel): (&[i8], usize),
+    packed: &[TileBuffer; 2 * MAX_PARTIAL_TAPS],
+    first: usize,
+) {
+    let stride = geometry.stride;
+    let pitch = geometry.pitch;
+    let row_step = stride * pitch;
+    let full_steps = shape.in_channels / CHANNELS_PER_STEP;
+    let quads = shape.in_channels / QUAD;
+    let quad_stride = int8_quad_stride(shape.out_channels, channel);
+    let weights = weight[shape.int8_index(0, 0, channel)..]
+        .as_ptr()
+        .cast::<u8>();
+    let band = band.0.as_ptr().cast::<u8>();
+    let low_images = geometry.phases * geometry.image_bytes();
+    // SAFETY: tiles are configured (caller).
+    unsafe {
+        asm!(
+            "tilezero tmm0",
+            "tilezero tmm1",
+            "tilezero tmm2",
+            "tilezero tmm3",
+            options(nostack, nomem)
+        )
+    };
+    for kernel_y in 0..shape.kernel_height {
+        let image = (kernel_y % stride) * geometry.image_bytes();
+        let below = kernel_y / stride * geometry.grid * stride;
+        for kernel_x in 0..shape.kernel_width {
+            let tap = kernel_y * shape.kernel_width + kernel_x;
+            let pixel = stride * first + below + kernel_x;
+            // SAFETY (all below): `Band` puts every pixel 16 positions read inside the
+            // image, and the block's quads of every step inside `weight`.
+            let high = unsafe { band.add(image + pixel * pitch) };
+            let low = unsafe { high.add(low_images) };
+            for step in 0..full_steps {
+                let channels = step * CHANNELS_PER_STEP;
+                let rows = unsafe { weights.add((tap * quads + step * ROWS) * quad_stride) };
+                unsafe {
+                    multiply_step(
+                        (high.add(channels), low.add(channels), row_step),
+                        (rows, quad_stride),
+                    )
+                };
+            }
+            if full_steps * CHANNELS_PER_STEP < shape.in_channels {
+                let channels = full_steps * CHANNELS_PER_STEP;
+                let (first, second) = (&packed[2 * tap], &packed[2 * tap + 1]);
+                unsafe {
+                    multiply_step_tiles(
+                        (high.add(channels), low.add(channels), row_step),
+                        (first.0.as_ptr(), second.0.as_ptr(), ROW_BYTES),
+                    )
+                };
+            }
+        }
+    }
+}
+
+/// Stores `tmm0`-`tmm3` into `sums`.
+///
+/// # Safety
+/// Tiles configured as [`TILE_CONFIG`] says.
+#[inline(always)]
+unsafe fn store_sums(sums: &mut BlockSums) {
+    let [s0, s1, s2, s3] = sums;
     // SAFETY: each buffer is 16 rows of 64 bytes.
     unsafe {
         asm!(
@@ -528,146 +609,150 @@ unsafe fn run_sums(
             "tilestored [{s1} + {stride}], tmm1",
             "tilestored [{s2} + {stride}], tmm2",
             "tilestored [{s3} + {stride}], tmm3",
-            s0 = in(reg) pointers[0],
-            s1 = in(reg) pointers[1],
-            s2 = in(reg) pointers[2],
-            s3 = in(reg) pointers[3],
+            s0 = in(reg) s0.0.as_mut_ptr(),
+            s1 = in(reg) s1.0.as_mut_ptr(),
+            s2 = in(reg) s2.0.as_mut_ptr(),
+            s3 = in(reg) s3.0.as_mut_ptr(),
             stride = in(reg) ROW_BYTES,
             options(nostack, preserves_flags)
         );
     }
 }
 
-/// One 64-channel step of a block: both digit planes' activation tiles (`sources`: first
-/// row and row stride in bytes) times the step's two weight tiles (`weights`, 2 KB), added
-/// to the four sum tiles.
+/// One 64-channel step: the high and low digits of 16 positions (first rows, and their
+/// row stride in bytes) times the step's weights for 32 channels (the first row of 16
+/// quads x 16 channels, whose next 16 channels are 64 bytes on, and the quad row stride),
+/// added to the four sum tiles.
 ///
 /// # Safety
-/// Tiles configured as [`TILE_CONFIG`] says, the sums in `tmm0`-`tmm3`; each source covers
-/// 16 rows of 64 bytes at its stride; `weights` covers 2 KB.
+/// As for [`multiply_step_tiles`].
 #[inline(always)]
-unsafe fn multiply_step(sources: [(*const i8, usize); 2], weights: *const u8) {
+unsafe fn multiply_step(
+    (high, low, row_step): (*const u8, *const u8, usize),
+    (weights, quad_stride): (*const u8, usize),
+) {
+    // SAFETY: the caller's promises.
+    unsafe {
+        multiply_step_tiles(
+            (high, low, row_step),
+            (weights, weights.add(SUM_COLUMNS * QUAD), quad_stride),
+        )
+    }
+}
+
+/// One 64-channel step: both digit tiles (`high`, `low`, rows `row_step` bytes apart) times
+/// two weight tiles (`first`, `second`, rows `weight_step` bytes apart), added to `tmm0`-`tmm3`.
+///
+/// # Safety
+/// Tiles configured as [`TILE_CONFIG`] says; each pointer starts 16 readable rows of 64
+/// bytes at its step, each row 64-byte aligned for speed.
+#[inline(always)]
+unsafe fn multiply_step_tiles(
+    (high, low, row_step): (*const u8, *const u8, usize),
+    (first, second, weight_step): (*const u8, *const u8, usize),
+) {
     // SAFETY: the caller's promises.
     unsafe {
         asm!(
-            "tileloadd tmm4, [{high} + {high_stride}]",
-            "tileloadd tmm5, [{low} + {low_stride}]",
-            "tileloadd tmm6, [{b0} + {sb}]",
-            "tileloadd tmm7, [{b1} + {sb}]",
+            "tileloadd tmm4, [{high} + {row_step}]",
+            "tileloadd tmm6, [{first} + {weight_step}]",
             "tdpbusd tmm0, tmm4, tmm6",
+            "tileloadd tmm7, [{second} + {weight_step}]",
             "tdpbusd tmm1, tmm4, tmm7",
+            "tileloadd tmm5, [{low} + {row_step}]",
             "tdpbusd tmm2, tmm5, tmm6",
             "tdpbusd tmm3, tmm5, tmm7",
-            high = in(reg) sources[0].0,
-            high_stride = in(reg) sources[0].1,
-            low = in(reg) sources[1].0,
-            low_stride = in(reg) sources[1].1,
-            b0 = in(reg) weights,
-            b1 = in(reg) weights.add(ROWS * ROW_BYTES),
-            sb = in(reg) ROW_BYTES,
+            high = in(reg) high,
+            low = in(reg) low,
+            row_step = in(reg) row_step,
+            first = in(reg) first,
+            second = in(reg) second,
+            weight_step = in(reg) weight_step,
             options(nostack, readonly, preserves_flags)
         );
     }
 }
 
-/// Copies 64 activations from `step` of each pixel's row into `buffer`, zeros where the
-/// pixel reads nothing (the padding: zero codes, as the contract reads it).
-///
-/// # Safety
-/// AVX-512F; each `Some` row has `in_channels` values in `values`, `step + 64` of them.
-#[inline(always)]
-unsafe fn gather(
-    values: &[i8],
-    in_channels: usize,
-    step: usize,
-    rows: &[Option<usize>],
-    buffer: &mut TileBuffer,
-) {
-    for (pixel, row) in rows.iter().enumerate() {
-        // SAFETY: the caller's promise for the row; the buffer row is 64 aligned bytes.
-        unsafe {
-            let bytes = match row {
-                Some(row) => _mm512_loadu_si512(values[row * in_channels + step..].as_ptr().cast()),
-                None => _mm512_setzero_si512(),
-            };
-            _mm512_store_si512(buffer.0[pixel * ROW_BYTES..].as_mut_ptr().cast(), bytes);
-        }
-    }
+/// A block's sums stored from the tiles, waiting to be written out.
+#[derive(Clone, Copy)]
+struct Pending {
+    /// Which of the two sets of sum buffers holds them.
+    set: usize,
+    /// The block's first output channel.
+    channel: usize,
+    /// The band's position of the first sum row, the band and its first output pixel
+    /// `(row, column)`.
+    first: usize,
+    band: Band,
+    origin: (usize, usize),
 }
 
-/// [`gather`] for a last step of `width` (< 64) channels: the rest of each buffer row zero.
-///
-/// # Safety
-/// AVX-512F/BW; each `Some` row has `in_channels` values in `values`, `step + width` of
-/// them.
-#[inline(always)]
-unsafe fn gather_partial(
-    values: &[i8],
-    (in_channels, step, width): (usize, usize, usize),
-    rows: &[Option<usize>],
-    buffer: &mut TileBuffer,
-) {
-    // Masked bytes are neither read nor able to fault.
-    let mask = u64::MAX >> (ROW_BYTES - width);
-    for (pixel, row) in rows.iter().enumerate() {
-        // SAFETY: the caller's promise for the row; the buffer row is 64 aligned bytes.
-        unsafe {
-            let bytes = match row {
-                Some(row) => {
-                    let from = &values[row * in_channels + step..][..width];
-                    _mm512_maskz_loadu_epi8(mask, from.as_ptr())
-                }
-                None => _mm512_setzero_si512(),
-            };
-            _mm512_store_si512(buffer.0[pixel * ROW_BYTES..].as_mut_ptr().cast(), bytes);
-        }
-    }
-}
-
-/// `out (+)= round(128 high + low) * scale * weight_scales + bias` for the block's `count`
-/// pixels, `stride` apart in `out`, each a product then a sum as the scalar reference does.
-/// `128 high + low` is formed exactly in i32 when the kernel has at most
-/// [`MAX_DIGIT_CHANNELS`] products (`i32_exact`: one tap's bound, `|code| <= 16383`,
-/// `|q_w| <= 128`), else in f64; its conversion to f32 rounds to nearest either way.
-///
-/// # Safety
-/// AVX-512F; `weight_scales` and `bias` hold the block's 32 channels; `out` holds them for
-/// each of the `count` pixels.
-#[inline(always)]
-unsafe fn store(
-    sums: &BlockSums,
-    (count, i32_exact): (usize, bool),
+/// What turns a block's exact sums into outputs.
+struct Epilogue<'p> {
+    i32_exact: bool,
     scale: f32,
-    (weight_scales, bias): (&[f32], &[f32]),
-    (out, stride): (&mut [f32], usize),
+    parameters: (&'p [f32], &'p [f32]),
+    out_channels: usize,
+    out_width: usize,
     accumulate: Accumulate,
-) {
-    let (weight_scales, bias) = (&weight_scales[..BLOCK_CHANNELS], &bias[..BLOCK_CHANNELS]);
-    for pixel in 0..count {
-        let out = &mut out[pixel * stride..][..BLOCK_CHANNELS];
-        let at = pixel * ROW_BYTES;
-        for vector in 0..2 {
-            let channels = vector * SUM_COLUMNS;
-            // SAFETY: AVX-512F; each sum buffer row is 64 aligned bytes; 16 floats from
-            // `channels` in each slice.
-            unsafe {
-                let high = _mm512_load_si512(sums[vector].0[at..].as_ptr().cast());
-                let low = _mm512_load_si512(sums[2 + vector].0[at..].as_ptr().cast());
-                let rounded = if i32_exact {
-                    // The shift by 7 is the multiplication by the digit base.
-                    const { assert!(DIGIT_BASE == (1 << 7) as f32) };
-                    _mm512_cvtepi32_ps(_mm512_add_epi32(_mm512_slli_epi32::<7>(high), low))
-                } else {
-                    round_zmm(exact_digits_zmm(high, low))
-                };
-                let total = _mm512_mul_ps(rounded, _mm512_set1_ps(scale));
-                let weight_scale = _mm512_loadu_ps(weight_scales[channels..].as_ptr());
-                let scaled = _mm512_mul_ps(total, weight_scale);
-                let mut value = _mm512_add_ps(scaled, _mm512_loadu_ps(bias[channels..].as_ptr()));
-                if accumulate == Accumulate::Add {
-                    value = _mm512_add_ps(_mm512_loadu_ps(out[channels..].as_ptr()), value);
+}
+
+impl Epilogue<'_> {
+    /// `out (+)= round(128 high + low) * scale * weight_scales + bias` for each output
+    /// pixel of `block`'s sum rows (the block's 32 channels), each a product then a sum as the scalar reference
+    /// does. `128 high + low` is formed exactly in i32 when the kernel has at most
+    /// [`MAX_DIGIT_CHANNELS`] products (`i32_exact`: one tap's bound, `|code| <= 16383`,
+    /// `|q_w| <= 128`), else in f64; its conversion to f32 rounds to nearest either way.
+    ///
+    /// # Safety
+    /// AVX-512F; the block's pixels and channels are inside `output` and the parameters.
+    #[inline(always)]
+    unsafe fn write(&self, sums: &BlockSums, block: &Pending, output: &mut [f32]) {
+        let channel = block.channel;
+        let weight_scales = &self.parameters.0[channel..][..BLOCK_CHANNELS];
+        let bias = &self.parameters.1[channel..][..BLOCK_CHANNELS];
+        let band = &block.band;
+        let (mut y, mut x) = (block.first / band.grid, block.first % band.grid);
+        for row in 0..BLOCK_PIXELS {
+            if y >= band.rows {
+                break;
+            }
+            let inside = x < band.columns;
+            let pixel = (block.origin.0 + y) * self.out_width + block.origin.1 + x;
+            (y, x) = if x + 1 == band.grid {
+                (y + 1, 0)
+            } else {
+                (y, x + 1)
+            };
+            if !inside {
+                continue;
+            }
+            let out = &mut output[pixel * self.out_channels + channel..][..BLOCK_CHANNELS];
+            let at = row * ROW_BYTES;
+            for vector in 0..2 {
+                let channels = vector * SUM_COLUMNS;
+                // SAFETY: AVX-512F; each sum buffer row is 64 aligned bytes; 16 floats from
+                // `channels` in each slice.
+                unsafe {
+                    let high = _mm512_load_si512(sums[vector].0[at..].as_ptr().cast());
+                    let low = _mm512_load_si512(sums[2 + vector].0[at..].as_ptr().cast());
+                    let rounded = if self.i32_exact {
+                        // The shift by 7 is the multiplication by the digit base.
+                        const { assert!(DIGIT_BASE == (1 << 7) as f32) };
+                        _mm512_cvtepi32_ps(_mm512_add_epi32(_mm512_slli_epi32::<7>(high), low))
+                    } else {
+                        round_zmm(exact_digits_zmm(high, low))
+                    };
+                    let total = _mm512_mul_ps(rounded, _mm512_set1_ps(self.scale));
+                    let weight_scale = _mm512_loadu_ps(weight_scales[channels..].as_ptr());
+                    let scaled = _mm512_mul_ps(total, weight_scale);
+                    let bias = _mm512_loadu_ps(bias[channels..].as_ptr());
+                    let mut value = _mm512_add_ps(scaled, bias);
+                    if self.accumulate == Accumulate::Add {
+                        value = _mm512_add_ps(_mm512_loadu_ps(out[channels..].as_ptr()), value);
+                    }
+                    _mm512_storeu_ps(out[channels..].as_mut_ptr(), value);
                 }
-                _mm512_storeu_ps(out[channels..].as_mut_ptr(), value);
             }
         }
     }
