@@ -1,7 +1,7 @@
 //! The firmware-facing API: load, plan, set the camera, push observations, infer.
 
 use crate::anchors::{self, Camera};
-use crate::config::{ModelConfig, PYRAMID_LEVELS};
+use crate::config::{MAX_OBS_STEPS, ModelConfig, PYRAMID_LEVELS};
 use crate::context;
 use crate::denoiser::{self, DenoiserScratch};
 use crate::error::Error;
@@ -108,7 +108,10 @@ pub struct Policy<'w, 'a> {
     camera: Option<Camera>,
     /// Ring slot of the newest frame; frames are pushed into `(newest + 1) % To`.
     newest: usize,
-    has_observation: bool,
+    /// Frames pushed since creation or [`reset`](Self::reset), at most `To`. Until there
+    /// are `To`, the history frames older than the first are that first frame (Diffusion
+    /// Policy pads by repeating it), read from its slot rather than copied into the others.
+    observed: usize,
 }
 
 impl<'w, 'a> Policy<'w, 'a> {
@@ -156,7 +159,7 @@ impl<'w, 'a> Policy<'w, 'a> {
             kernels,
             camera: None,
             newest: 0,
-            has_observation: false,
+            observed: 0,
         })
     }
 
@@ -176,7 +179,14 @@ impl<'w, 'a> Policy<'w, 'a> {
 
     /// Forgets the observation history.
     pub fn reset(&mut self) {
-        self.has_observation = false;
+        self.observed = 0;
+    }
+
+    /// The ring slot holding history frame `frame` (0 = oldest) of `frames`; there is at
+    /// least one observation.
+    fn history_slot(&self, frames: usize, frame: usize) -> usize {
+        let age = (frames - 1 - frame).min(self.observed - 1);
+        (self.newest + frames - age) % frames
     }
 
     fn buffers(&mut self) -> Buffers<'_> {
@@ -214,7 +224,7 @@ impl<'w, 'a> Policy<'w, 'a> {
             return Err(Error::NonFiniteState);
         }
         let frames = config.n_obs_steps as usize;
-        let slot = if self.has_observation {
+        let slot = if self.observed > 0 {
             (self.newest + 1) % frames
         } else {
             0
@@ -223,7 +233,6 @@ impl<'w, 'a> Policy<'w, 'a> {
         let kernels = self.kernels;
         let weights = self.model.weights();
         let plan = self.plan;
-        let first_observation = !self.has_observation;
         let buffers = self.buffers();
         let (first, rest) = buffers.scratch.split_at_mut(plan.trunk_activation);
         frame::check_size(&config, image)?;
@@ -246,16 +255,8 @@ impl<'w, 'a> Policy<'w, 'a> {
             &mut store,
         );
         buffers.states[slot * state_dim..][..state_dim].copy_from_slice(state);
-        if first_observation {
-            for other in 1..frames {
-                buffers
-                    .features
-                    .copy_within(0..frame_len, other * frame_len);
-                buffers.states.copy_within(0..state_dim, other * state_dim);
-            }
-        }
         self.newest = slot;
-        self.has_observation = true;
+        self.observed = (self.observed + 1).min(frames);
         Ok(())
     }
 
@@ -272,7 +273,7 @@ impl<'w, 'a> Policy<'w, 'a> {
     ) -> Result<Actions<'_>, Error> {
         let config = *self.config();
         let camera = self.camera.ok_or(Error::NoCamera)?;
-        if !self.has_observation {
+        if self.observed == 0 {
             return Err(Error::NoObservation);
         }
         let sequence = config.horizon as usize * config.action_dim as usize;
@@ -282,7 +283,8 @@ impl<'w, 'a> Policy<'w, 'a> {
         let context_dim = config.context_dim();
         let anchor_values = config.anchor_count() * 2;
         let newest = self.newest;
-        let oldest = (newest + 1) % frames;
+        let slots: [usize; MAX_OBS_STEPS] =
+            core::array::from_fn(|frame| self.history_slot(frames, frame.min(frames - 1)));
         let kernels = self.kernels;
         let weights = self.model.weights();
         let plan = self.plan;
@@ -308,8 +310,7 @@ impl<'w, 'a> Policy<'w, 'a> {
 
         // The normalized states do not change during the loop: write them into g once.
         let cond_stride = context_dim + state_dim;
-        for frame_index in 0..frames {
-            let slot = (oldest + frame_index) % frames;
+        for (frame_index, &slot) in slots[..frames].iter().enumerate() {
             context::normalize_state(
                 &buffers.states[slot * state_dim..][..state_dim],
                 normalizer.state_scale,
@@ -330,8 +331,7 @@ impl<'w, 'a> Policy<'w, 'a> {
                 current_state,
                 anchors_uv,
             );
-            for frame_index in 0..frames {
-                let slot = (oldest + frame_index) % frames;
+            for (frame_index, &slot) in slots[..frames].iter().enumerate() {
                 let mut store = FrameStore::new(
                     &mut buffers.features[slot * frame_len..][..frame_len],
                     &plan.frame,
@@ -418,10 +418,10 @@ impl<'w, 'a> Policy<'w, 'a> {
     pub fn feature_map(&mut self, frame: usize, level: usize) -> Option<&[f32]> {
         let config = *self.config();
         let frames = config.n_obs_steps as usize;
-        if !self.has_observation || frame >= frames || level >= PYRAMID_LEVELS {
+        if self.observed == 0 || frame >= frames || level >= PYRAMID_LEVELS {
             return None;
         }
-        let slot = (self.newest + 1 + frame) % frames;
+        let slot = self.history_slot(frames, frame);
         let (kernels, weights, layout) = (self.kernels, self.model.weights(), self.plan.frame);
         // The frames are the arena's first buffer (see `buffers`).
         let region = &mut self.arena[slot * layout.total..][..layout.total];

@@ -226,3 +226,45 @@ fn two_instances_give_identical_bits_metaworld() {
     two_instances_agree(ModelConfig::METAWORLD, Quant::F32, Backend::Auto);
     two_instances_agree(ModelConfig::METAWORLD, Quant::Int8, Backend::Auto);
 }
+
+/// The first observation after a reset stands for every older history frame (Diffusion
+/// Policy pads by repeating it): pushing it once gives the bits of pushing it `To` times,
+/// and with a longer history the frames pushed later take their places after it.
+#[test]
+fn first_observation_pads_the_history_as_if_repeated() {
+    let mut three_frames = ModelConfig::TINY;
+    three_frames.n_obs_steps = 3;
+    for config in [ModelConfig::TINY, three_frames] {
+        let weights = synthetic_weights_file(&config, 9).unwrap();
+        let model = Model::from_bytes(weights.as_slice()).unwrap();
+        let inputs = inputs(&config);
+        let mut arena = AlignedBytes::zeroed(ArenaPlan::new(&config).arena_bytes);
+        let mut policy = Policy::new(&model, arena.as_mut_slice()).unwrap();
+        policy.set_camera(inputs.camera);
+        let frames = config.n_obs_steps as usize;
+        // Pushes frames `pushed` (indices into `inputs`) after a reset and infers.
+        let mut infer_after = |pushed: &[usize]| -> Vec<u32> {
+            policy.reset();
+            for &index in pushed {
+                let (frame, state) = (&inputs.frames[index], &inputs.states[index]);
+                policy.push_observation(frame, state).unwrap();
+            }
+            let maps: Vec<Vec<u32>> = (0..frames)
+                .map(|frame| {
+                    let map = policy.feature_map(frame, 0).unwrap();
+                    map.iter().map(|v| v.to_bits()).collect()
+                })
+                .collect();
+            let actions = policy.infer(Noise::Seed(11)).unwrap();
+            let bits = actions.action_pred().iter().map(|v| v.to_bits());
+            maps.concat().into_iter().chain(bits).collect()
+        };
+        let once = infer_after(&[0]);
+        assert_eq!(once, infer_after(&vec![0; frames]), "{frames} frames, one push");
+        let later = infer_after(&[0, 1]);
+        let mut padded = vec![0; frames - 1];
+        padded.push(1);
+        assert_eq!(later, infer_after(&padded), "{frames} frames, two pushes");
+        assert_ne!(once, later, "the second frame matters");
+    }
+}
