@@ -260,7 +260,11 @@ fn first_observation_pads_the_history_as_if_repeated() {
             maps.concat().into_iter().chain(bits).collect()
         };
         let once = infer_after(&[0]);
-        assert_eq!(once, infer_after(&vec![0; frames]), "{frames} frames, one push");
+        assert_eq!(
+            once,
+            infer_after(&vec![0; frames]),
+            "{frames} frames, one push"
+        );
         let later = infer_after(&[0, 1]);
         let mut padded = vec![0; frames - 1];
         padded.push(1);
