@@ -1,9 +1,9 @@
 //! The AMX backend runs the int8 convolutions on its tiles only for the shapes they take
-//! (`Amx::covers`); any other shape goes, silently and correctly, to the AVX-512 kernels.
-//! The speed of the trunk rests on every int8 layer of the product models being taken
-//! (the stem's patch bands included):
-//! this encodes a frame of metaworld and panda through a kernel wrapper that records
-//! every dense int8 convolution it is asked for, and checks each one against `covers`.
+//! (`Amx::covers`, `Amx::covers_codes`); any other shape goes, silently and correctly, to
+//! the AVX-512 kernels. The speed of the trunk and of the denoiser rests on every int8
+//! layer of the product models being taken (the stem's patch bands included): this encodes
+//! a frame of metaworld and panda and runs an inference through a kernel wrapper that
+//! records every int8 convolution it is asked for, and checks each one.
 #![cfg(target_arch = "x86_64")]
 
 use std::sync::Mutex;
@@ -11,7 +11,7 @@ use std::sync::Mutex;
 use scdp_engine::frame::PATCH_CHANNELS;
 use scdp_engine::kernels::x86_64::amx::Amx;
 use scdp_engine::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels, scalar::Scalar};
-use scdp_engine::{ArenaPlan, Model, ModelConfig, Policy};
+use scdp_engine::{ArenaPlan, Camera, Model, ModelConfig, Noise, Policy};
 use scdp_tests::synthetic_weights_file_as;
 use weights_tool::Quant;
 use weights_tool::writer::AlignedBytes;
@@ -20,6 +20,8 @@ use weights_tool::writer::AlignedBytes;
 /// tiles would take it.
 struct Recording {
     calls: Mutex<Vec<(ConvShape, bool)>>,
+    /// The same for the U-Net's convolutions on signed codes.
+    code_calls: Mutex<Vec<(ConvShape, bool)>>,
 }
 
 impl Kernels for Recording {
@@ -97,6 +99,8 @@ impl Kernels for Recording {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
+        let covered = Amx::covers_codes(shape, input);
+        self.code_calls.lock().unwrap().push((*shape, covered));
         Scalar.conv_int8_codes(
             shape,
             input,
@@ -120,11 +124,16 @@ impl Kernels for Recording {
     }
 }
 
-fn dense_int8_convolutions_of_one_frame(config: ModelConfig) -> Vec<(ConvShape, bool)> {
+/// The int8 convolutions one frame and one inference ask for: the trunk's dense ones
+/// (digit planes), then the U-Net's (codes).
+type Recorded = (Vec<(ConvShape, bool)>, Vec<(ConvShape, bool)>);
+
+fn int8_convolutions_of_one_inference(config: ModelConfig) -> Recorded {
     let weights = synthetic_weights_file_as(&config, 1, Quant::Int8).unwrap();
     let model = Model::from_bytes(weights.as_slice()).unwrap();
     let recording: &'static Recording = Box::leak(Box::new(Recording {
         calls: Mutex::new(Vec::new()),
+        code_calls: Mutex::new(Vec::new()),
     }));
     let mut arena = AlignedBytes::zeroed(ArenaPlan::new(&config).arena_bytes);
     let mut policy = Policy::with_kernels(&model, arena.as_mut_slice(), recording).unwrap();
@@ -133,7 +142,22 @@ fn dense_int8_convolutions_of_one_frame(config: ModelConfig) -> Vec<(ConvShape, 
     let frame: Vec<u8> = (0..3 * pixels).map(|i| (i * 7 % 251) as u8).collect();
     let state = vec![0.1; config.state_dim as usize];
     policy.push_observation(&frame, &state).unwrap();
-    recording.calls.lock().unwrap().clone()
+    let trunk = recording.calls.lock().unwrap().clone();
+    let (width, height) = (config.image_width as f32, config.image_height as f32);
+    let intrinsics = [
+        [width, 0.0, width / 2.0],
+        [0.0, width, height / 2.0],
+        [0.0, 0.0, 1.0],
+    ];
+    let mut extrinsics = [[0.0; 4]; 4];
+    for (axis, row) in extrinsics.iter_mut().enumerate() {
+        row[axis] = 1.0;
+    }
+    extrinsics[2][3] = 1.0;
+    policy.set_camera(Camera::new(&intrinsics, &extrinsics).unwrap());
+    policy.infer(Noise::Seed(3)).unwrap();
+    let unet = recording.code_calls.lock().unwrap().clone();
+    (trunk, unet)
 }
 
 #[test]
@@ -142,7 +166,7 @@ fn amx_tiles_take_every_dense_int8_convolution_of_the_product_models() {
         ("metaworld", ModelConfig::METAWORLD),
         ("panda", ModelConfig::PANDA),
     ] {
-        let calls = dense_int8_convolutions_of_one_frame(config);
+        let (calls, _) = int8_convolutions_of_one_inference(config);
         let (stem, others): (Vec<_>, Vec<_>) = calls
             .iter()
             .partition(|(shape, _)| shape.in_channels == PATCH_CHANNELS);
@@ -164,6 +188,24 @@ fn amx_tiles_take_every_dense_int8_convolution_of_the_product_models() {
             .filter(|&level| !config.projection_on_demand(level))
             .count();
         assert_eq!(others.len(), 19 + dense_projections, "{name}");
+        for &(shape, covered) in &calls {
+            assert!(covered, "{name}: the AMX tiles do not take {shape:?}");
+        }
+    }
+}
+
+#[test]
+fn amx_tiles_take_every_int8_convolution_of_the_denoiser() {
+    for (name, config) in [
+        ("metaworld", ModelConfig::METAWORLD),
+        ("panda", ModelConfig::PANDA),
+    ] {
+        let (_, calls) = int8_convolutions_of_one_inference(config);
+        // Per step: two per residual block (12 of them), five 1x1 residuals where the width
+        // changes, two downsamplings and the final block's; the head and the upsamplings
+        // are f32.
+        let steps = config.num_inference_steps as usize;
+        assert_eq!(calls.len(), steps * (2 * 12 + 5 + 2 + 1), "{name}");
         for &(shape, covered) in &calls {
             assert!(covered, "{name}: the AMX tiles do not take {shape:?}");
         }

@@ -36,8 +36,9 @@ pub enum Backend {
     /// x86-64 AVX-512 (F, BW, VL) with VNNI: the int8 and f32 2-D convolutions, the U-Net
     /// kernels and the element-wise operations on ZMM vectors; AVX2 where those do not apply.
     Avx512,
-    /// x86-64 AMX (TILE, INT8): the int8 2-D convolutions on the tile matrix unit, the
-    /// rest as [`Backend::Avx512`]. On Linux, detection asks the OS for the tile registers.
+    /// x86-64 AMX (TILE, INT8): the int8 convolutions (trunk and U-Net) on the tile matrix
+    /// unit, the rest as [`Backend::Avx512`]. On Linux, detection asks the OS for the tile
+    /// registers.
     Amx,
 }
 

@@ -1,5 +1,5 @@
-//! Intel AMX: the int8 convolution of the trunk on the tile matrix unit (`tdpbusd`), every
-//! other kernel from [`Avx512`].
+//! Intel AMX: the int8 convolutions on the tile matrix unit (`tdpbusd`, `tdpbssd`): the
+//! trunk's on digit planes, the U-Net's on signed codes; every other kernel from [`Avx512`].
 //!
 //! One `tdpbusd` multiplies a 16 x 64 tile of u8 activations (16 output positions, 64
 //! input channels) by a 16 x 64 tile of i8 weights (16 input-channel quads, 16 output
@@ -20,14 +20,21 @@
 //! the weight tiles are read in place from the file's layout ([`int8_quad_index`]: 64-byte
 //! rows of 16 channels).
 //!
+//! The U-Net's signed codes are split into digits as a band is copied: `high = code >> 7`
+//! (-128..=127) takes the signed-by-signed `tdpbssd`, `low = code & 127` the same
+//! `tdpbusd` as the trunk's, and `128 high + low` is the code, so the sums are the same
+//! exact code sums. Its sequences are 4 to 16 positions, one or two tiles: the vector
+//! kernels spent most of their time widening each weight for every 4 positions.
+//!
 //! Linux hands out the tile registers on request only (`arch_prctl(ARCH_REQ_XCOMP_PERM)`);
 //! without an OS (`target_os = "none"`) the firmware that set XCR0 has enabled them.
 
 use core::arch::asm;
 use core::arch::x86_64::{
-    _mm512_add_epi32, _mm512_add_ps, _mm512_cvtepi32_ps, _mm512_load_si512, _mm512_loadu_ps,
-    _mm512_maskz_loadu_epi8, _mm512_mul_ps, _mm512_set1_ps, _mm512_slli_epi32, _mm512_store_si512,
-    _mm512_storeu_ps,
+    _mm256_store_si256, _mm512_add_epi32, _mm512_add_ps, _mm512_and_si512, _mm512_cvtepi16_epi8,
+    _mm512_cvtepi32_ps, _mm512_load_si512, _mm512_loadu_ps, _mm512_maskz_loadu_epi8,
+    _mm512_maskz_loadu_epi16, _mm512_mul_ps, _mm512_set1_epi16, _mm512_set1_ps, _mm512_slli_epi32,
+    _mm512_srai_epi16, _mm512_store_si512, _mm512_storeu_ps,
 };
 use core::mem::MaybeUninit;
 
@@ -36,9 +43,10 @@ use super::int8::{exact_digits_zmm, round_zmm};
 #[cfg(doc)]
 use crate::kernels::int8_quad_index;
 use crate::kernels::ops::{Activation, DIGIT_BASE};
-use crate::kernels::scalar::assert_int8_lengths;
+use crate::kernels::scalar::{assert_code_lengths, assert_int8_lengths};
 use crate::kernels::{
-    Accumulate, CodeRows, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS, QUAD, int8_quad_stride,
+    Accumulate, CodeRows, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS, MAX_DIGIT_TERMS, QUAD,
+    int8_quad_stride, int8_quads,
 };
 
 /// Rows of every tile: pixels of an activation tile, quads of a weight tile, pixels of a
@@ -68,24 +76,18 @@ static INSTANCE: Amx = Amx {
 
 impl Amx {
     /// Whether [`Kernels::conv_int8`] runs on the tiles here: activations readable as u8,
-    /// whole input-channel quads up to [`MAX_IN_CHANNELS`] (a last partial 64-channel step
-    /// is zero-padded, for kernels of up to [`MAX_PARTIAL_TAPS`] taps), whole 32-channel
-    /// blocks, and a band of at least one output pixel fits the stack buffer (other shapes
-    /// go to [`Avx512`]). Every int8 layer of the model qualifies, the stem's 196-byte
-    /// patches included.
+    /// whole input-channel quads (a last partial 64-channel step is zero-padded, for
+    /// kernels of up to [`MAX_PARTIAL_TAPS`] taps), whole 32-channel blocks, and a band of
+    /// at least one output pixel fits the stack buffer (other shapes go to [`Avx512`]).
+    /// Every int8 layer of the model qualifies, the stem's 196-byte patches included.
     pub fn covers(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
-        Self::band(shape, input).is_some()
+        band(shape, input).is_some()
     }
 
-    fn band(shape: &ConvShape, input: &DigitRows<'_>) -> Option<Band> {
-        let partial_fits = shape.in_channels.is_multiple_of(CHANNELS_PER_STEP)
-            || shape.kernel_height * shape.kernel_width <= MAX_PARTIAL_TAPS;
-        let applies = input.nonnegative
-            && shape.in_channels.is_multiple_of(QUAD)
-            && step_channels(shape.in_channels) <= MAX_IN_CHANNELS
-            && shape.out_channels.is_multiple_of(BLOCK_CHANNELS)
-            && partial_fits;
-        if applies { Band::plan(shape) } else { None }
+    /// [`covers`](Self::covers) for [`Kernels::conv_int8_codes`]: every U-Net convolution
+    /// with int8 weights qualifies.
+    pub fn covers_codes(shape: &ConvShape, input: &CodeRows<'_>) -> bool {
+        band(shape, input).is_some()
     }
 
     /// [`Kernels::conv_int8`] on the tiles; `false`, with nothing written, when they do not
@@ -101,13 +103,36 @@ impl Amx {
         output: &mut [f32],
         accumulate: Accumulate,
     ) -> bool {
-        let Some(band) = Self::band(shape, input) else {
+        let Some(band) = band(shape, input) else {
             return false;
         };
         let parameters = (weight, weight_scales, bias);
         assert_int8_lengths(shape, input, parameters, output.len());
         // SAFETY: `self` exists only once AMX, AVX-512 and the permission were detected;
         // the lengths were asserted and the band planned just above.
+        unsafe { conv(shape, input, parameters, output, accumulate, band) };
+        true
+    }
+
+    /// [`Kernels::conv_int8_codes`] on the tiles; `false`, with nothing written, when they
+    /// do not apply ([`Amx::covers_codes`]).
+    #[allow(clippy::too_many_arguments)]
+    pub fn conv_int8_codes_on_tiles(
+        &self,
+        shape: &ConvShape,
+        input: &CodeRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) -> bool {
+        let Some(band) = band(shape, input) else {
+            return false;
+        };
+        let parameters = (weight, weight_scales, bias);
+        assert_code_lengths(shape, input, parameters, output.len());
+        // SAFETY: as for `conv_int8_on_tiles`.
         unsafe { conv(shape, input, parameters, output, accumulate, band) };
         true
     }
@@ -194,13 +219,155 @@ static TILE_CONFIG: TileConfig = {
     TileConfig(bytes)
 };
 
-/// One tile's worth of bytes, aligned for `tileloadd` / `tilestored` and ZMM moves.
+/// One tile's worth of bytes, aligned for `tileloadd` / `tilestored` and ZMM moves. Not
+/// initialized: written whole (by `tilestored`, or packed) before anything reads it, so a
+/// call does not clear 26 KB of stack it will overwrite (the U-Net makes 33 calls a step).
 #[derive(Clone, Copy)]
 #[repr(C, align(64))]
-struct TileBuffer([u8; ROWS * ROW_BYTES]);
+struct TileBuffer([MaybeUninit<u8>; ROWS * ROW_BYTES]);
 
-/// Input channels an activation tile row can hold at most (the widest ResNet-18 layer).
-const MAX_IN_CHANNELS: usize = 512;
+impl TileBuffer {
+    const UNWRITTEN: TileBuffer = TileBuffer([MaybeUninit::uninit(); ROWS * ROW_BYTES]);
+
+    fn as_ptr(&self) -> *const u8 {
+        self.0.as_ptr().cast()
+    }
+
+    fn as_mut_ptr(&mut self) -> *mut u8 {
+        self.0.as_mut_ptr().cast()
+    }
+}
+
+/// The band plan of a convolution the tiles take, `None` for one they do not.
+fn band<I: BandInput>(shape: &ConvShape, input: &I) -> Option<Band> {
+    let channels = I::channels(shape);
+    let taps = shape.kernel_height * shape.kernel_width;
+    let partial_fits = channels.is_multiple_of(CHANNELS_PER_STEP) || taps <= MAX_PARTIAL_TAPS;
+    let applies = input.digits_fit()
+        && channels.is_multiple_of(QUAD)
+        && taps * channels <= MAX_DIGIT_TERMS
+        && shape.out_channels.is_multiple_of(BLOCK_CHANNELS)
+        && partial_fits;
+    if applies {
+        Band::plan(shape, channels)
+    } else {
+        None
+    }
+}
+
+/// Activations the tiles read as two digit planes, `code = 128 high + low`: the trunk's
+/// [`DigitRows`] as they are, the U-Net's signed [`CodeRows`] split while a band is copied.
+trait BandInput {
+    /// The high digits can be negative (`tdpbssd`, signed by signed bytes); otherwise both
+    /// digits are in 0..=127 (`tdpbusd`).
+    const SIGNED_HIGH: bool;
+
+    /// Channels a pixel of the input holds: the layer's input channels, in whole quads.
+    fn channels(shape: &ConvShape) -> usize;
+
+    /// Whether the digits take the products above (the trunk's must be nonnegative).
+    fn digits_fit(&self) -> bool;
+
+    fn scale(&self) -> f32;
+
+    /// Copies the digits of `count` input pixels from pixel `first` into `high` and `low`,
+    /// `pitch` bytes a pixel, zero past [`channels`](Self::channels).
+    ///
+    /// # Safety
+    /// AVX-512F/BW; the pixels are inside the input; `high` and `low` are 64-byte aligned
+    /// and writable for `count pitch` bytes; `pitch` is a multiple of 64, at least the
+    /// channels.
+    unsafe fn copy_digits(
+        &self,
+        shape: &ConvShape,
+        pixels: (usize, usize),
+        rows: (*mut u8, *mut u8),
+        pitch: usize,
+    );
+}
+
+impl BandInput for DigitRows<'_> {
+    const SIGNED_HIGH: bool = false;
+
+    fn channels(shape: &ConvShape) -> usize {
+        shape.in_channels
+    }
+
+    fn digits_fit(&self) -> bool {
+        self.nonnegative
+    }
+
+    fn scale(&self) -> f32 {
+        self.scale
+    }
+
+    #[inline(always)]
+    unsafe fn copy_digits(
+        &self,
+        shape: &ConvShape,
+        (first, count): (usize, usize),
+        (high, low): (*mut u8, *mut u8),
+        pitch: usize,
+    ) {
+        let channels = shape.in_channels;
+        for (plane, to) in [(self.high, high), (self.low, low)] {
+            let from = &plane[first * channels..][..count * channels];
+            // SAFETY: the caller's promises.
+            unsafe { copy_pixels(from, channels, to, pitch) };
+        }
+    }
+}
+
+impl BandInput for CodeRows<'_> {
+    const SIGNED_HIGH: bool = true;
+
+    fn channels(shape: &ConvShape) -> usize {
+        CodeRows::row_stride(shape.in_channels)
+    }
+
+    fn digits_fit(&self) -> bool {
+        true
+    }
+
+    fn scale(&self) -> f32 {
+        self.scale
+    }
+
+    /// `high = code >> 7` (arithmetic: -128..=127 for codes in -16383..=16383) and
+    /// `low = code & 127`, 32 codes at a time.
+    #[inline(always)]
+    unsafe fn copy_digits(
+        &self,
+        shape: &ConvShape,
+        (first, count): (usize, usize),
+        (high, low): (*mut u8, *mut u8),
+        pitch: usize,
+    ) {
+        const CODES: usize = ROW_BYTES / 2;
+        let channels = Self::channels(shape);
+        let codes = &self.codes[first * channels..][..count * channels];
+        for (pixel, row) in codes.chunks_exact(channels).enumerate() {
+            for step in (0..pitch).step_by(CODES) {
+                let width = channels.saturating_sub(step).min(CODES);
+                // Masked codes are neither read nor able to fault; they load as zero.
+                let mask = u32::MAX.checked_shr((CODES - width) as u32).unwrap_or(0);
+                // SAFETY: AVX-512F/BW; the mask keeps the load inside the row; each store is
+                // 32 bytes of the caller's rows, 32-byte aligned (64-byte rows, 32-code
+                // steps).
+                unsafe {
+                    let values =
+                        _mm512_maskz_loadu_epi16(mask, row.as_ptr().add(step.min(channels)));
+                    let at = pixel * pitch + step;
+                    let high_digits = _mm512_cvtepi16_epi8(_mm512_srai_epi16::<7>(values));
+                    let low_digits =
+                        _mm512_cvtepi16_epi8(_mm512_and_si512(values, _mm512_set1_epi16(127)));
+                    _mm256_store_si256(high.add(at).cast(), high_digits);
+                    _mm256_store_si256(low.add(at).cast(), low_digits);
+                }
+            }
+        }
+    }
+}
 
 /// `in_channels` rounded up to whole 64-channel steps: the bytes a pixel takes in a band
 /// (the channels past `in_channels` zero).
@@ -247,7 +414,9 @@ struct Band {
 }
 
 impl Band {
-    fn new(shape: &ConvShape, rows: usize, columns: usize) -> Self {
+    /// The band of `rows` x `columns` output pixels of a convolution whose input pixels
+    /// hold `channels` values.
+    fn new(shape: &ConvShape, channels: usize, rows: usize, columns: usize) -> Self {
         let stride = shape.stride;
         let grid = ((columns - 1) * stride + shape.kernel_width).div_ceil(stride);
         let below = (shape.kernel_height - 1) / stride;
@@ -262,7 +431,7 @@ impl Band {
             phases: stride.min(shape.kernel_height),
             image_rows,
             image_pixels: (last_read + shape.kernel_width).max(image_rows * grid * stride),
-            pitch: step_channels(shape.in_channels),
+            pitch: step_channels(channels),
             tiles,
         }
     }
@@ -277,15 +446,16 @@ impl Band {
 
     /// The largest band of whole output rows that fits [`BAND_BYTES`] (spread evenly over
     /// the map), or of part of one row; `None` when not even one output pixel fits.
-    fn plan(shape: &ConvShape) -> Option<Band> {
+    fn plan(shape: &ConvShape, channels: usize) -> Option<Band> {
         let (out_height, out_width) = (shape.out_height(), shape.out_width());
-        let fits = |rows, columns| Band::new(shape, rows, columns).bytes() <= BAND_BYTES;
+        let band = |rows, columns| Band::new(shape, channels, rows, columns);
+        let fits = |rows, columns| band(rows, columns).bytes() <= BAND_BYTES;
         if out_height == 0 || out_width == 0 {
             return None;
         }
         if !fits(1, out_width) {
             let columns = (1..out_width).rev().find(|&columns| fits(1, columns))?;
-            return Some(Band::new(shape, 1, columns));
+            return Some(band(1, columns));
         }
         // The bytes grow with the rows: the most rows that fit, by bisection.
         let (mut fitting, mut too_many) = (1, out_height + 1);
@@ -298,7 +468,7 @@ impl Band {
             }
         }
         let rows = out_height.div_ceil(out_height.div_ceil(fitting));
-        Some(Band::new(shape, rows, out_width))
+        Some(band(rows, out_width))
     }
 }
 
@@ -326,9 +496,9 @@ struct BandBuffer([MaybeUninit<u8>; BAND_BYTES]);
 /// state; the slice lengths are those [`assert_int8_lengths`] checks; [`Amx::covers`] holds
 /// and `plan` is [`Band::plan`]'s.
 #[target_feature(enable = "avx512f,avx512bw")]
-unsafe fn conv(
+unsafe fn conv<I: BandInput>(
     shape: &ConvShape,
-    input: &DigitRows<'_>,
+    input: &I,
     (weight, weight_scales, bias): Parameters<'_>,
     output: &mut [f32],
     accumulate: Accumulate,
@@ -336,16 +506,18 @@ unsafe fn conv(
 ) {
     let (out_height, out_width) = (shape.out_height(), shape.out_width());
     let taps = shape.kernel_height * shape.kernel_width;
-    let i32_exact = taps * shape.in_channels <= MAX_DIGIT_CHANNELS;
-    let partial = !shape.in_channels.is_multiple_of(CHANNELS_PER_STEP);
+    let channels = I::channels(shape);
+    // The i32 bound takes digits of at most 127 in magnitude.
+    let i32_exact = !I::SIGNED_HIGH && taps * channels <= MAX_DIGIT_CHANNELS;
+    let partial = !channels.is_multiple_of(CHANNELS_PER_STEP);
     let mut band = BandBuffer([MaybeUninit::uninit(); BAND_BYTES]);
-    let mut packed = [TileBuffer([0; ROWS * ROW_BYTES]); 2 * MAX_PARTIAL_TAPS];
+    let mut packed = [TileBuffer::UNWRITTEN; 2 * MAX_PARTIAL_TAPS];
     // Two sets: one block's sums are written out while the tiles compute the next.
-    let mut sums = [[TileBuffer([0; ROWS * ROW_BYTES]); 4]; 2];
+    let mut sums = [[TileBuffer::UNWRITTEN; 4]; 2];
     let mut pending: Option<Pending> = None;
     let epilogue = Epilogue {
         i32_exact,
-        scale: input.scale,
+        scale: input.scale(),
         parameters: (weight_scales, bias),
         out_channels: shape.out_channels,
         out_width,
@@ -357,20 +529,20 @@ unsafe fn conv(
     for top in (0..out_height).step_by(plan.rows) {
         for left in (0..out_width).step_by(plan.columns) {
             let rows = plan.rows.min(out_height - top);
-            let geometry = Band::new(shape, rows, plan.columns.min(out_width - left));
+            let geometry = Band::new(shape, channels, rows, plan.columns.min(out_width - left));
             // SAFETY: AVX-512F; `geometry` is no larger than `plan`, which fits the buffer.
             unsafe { fill_band(shape, input, &geometry, (top, left), &mut band) };
             for channel in (0..shape.out_channels).step_by(BLOCK_CHANNELS) {
                 if partial {
                     // SAFETY: the block's channels and every tap are inside `weight`.
-                    unsafe { pack_partial_step(shape, weight, channel, &mut packed) };
+                    unsafe { pack_partial_step(shape, channels, weight, channel, &mut packed) };
                 }
                 for tile in 0..geometry.tiles {
                     let first = tile * BLOCK_PIXELS;
                     // SAFETY: the band holds every pixel the tile reads (`Band`); the block's
                     // weights are inside `weight`.
                     unsafe {
-                        tile_sums(shape, &geometry, &band, (weight, channel), &packed, first)
+                        tile_sums::<I>(shape, &geometry, &band, (weight, channel), &packed, first)
                     };
                     // The previous block's sums go out while the matrix unit works.
                     let set = match pending.take() {
@@ -403,61 +575,66 @@ unsafe fn conv(
 }
 
 /// Copies the input pixels band `geometry` at output pixel `(top, left)` reads into
-/// `band`, both digit planes, zero where they lie in the padding, past `in_channels` and
-/// in the slack after each image.
+/// `band`, both digit planes, zero where they lie in the padding, past the channels and in
+/// the slack after each image.
 ///
 /// # Safety
-/// AVX-512F; `geometry` fits [`BAND_BYTES`]; the planes hold `shape.input_len()` values.
+/// AVX-512F/BW; `geometry` fits [`BAND_BYTES`]; the input holds `shape`'s pixels.
 #[inline(always)]
-unsafe fn fill_band(
+unsafe fn fill_band<I: BandInput>(
     shape: &ConvShape,
-    input: &DigitRows<'_>,
+    input: &I,
     geometry: &Band,
     (top, left): (usize, usize),
     band: &mut BandBuffer,
 ) {
-    let (in_height, in_width, in_channels) = (shape.in_height, shape.in_width, shape.in_channels);
+    let (in_height, in_width) = (shape.in_height, shape.in_width);
     let pitch = geometry.pitch;
     let row_pixels = geometry.grid * geometry.stride;
+    let row_bytes = row_pixels * pitch;
     // The band's columns that read the input: padded column `left * stride + c` is input
     // column `left * stride + c - padding_width`.
     let shift = (left * geometry.stride) as isize - shape.padding_width as isize;
     let first = (-shift).clamp(0, row_pixels as isize) as usize;
     let end = (in_width as isize - shift).clamp(first as isize, row_pixels as isize) as usize;
     let base = band.0.as_mut_ptr().cast::<u8>();
-    for (plane_index, plane) in [input.high, input.low].into_iter().enumerate() {
-        for phase in 0..geometry.phases {
-            let image_index = plane_index * geometry.phases + phase;
-            // SAFETY: the images lie inside the buffer (`geometry.bytes() <= BAND_BYTES`).
-            let image = unsafe { base.add(image_index * geometry.image_bytes()) };
-            for image_row in 0..geometry.image_rows {
-                let padded_row = (top + image_row) * geometry.stride + phase;
-                let in_row = padded_row as isize - shape.padding_height as isize;
-                // SAFETY: the row lies inside the image.
-                let to = unsafe { image.add(image_row * row_pixels * pitch) };
-                if !(0..in_height as isize).contains(&in_row) || first == end {
-                    // SAFETY: as above.
-                    unsafe { to.write_bytes(0, row_pixels * pitch) };
-                    continue;
-                }
-                let from =
-                    (in_row as usize * in_width + (first as isize + shift) as usize) * in_channels;
-                let from = &plane[from..][..(end - first) * in_channels];
-                // SAFETY: the row lies inside the image; `from` holds the inside pixels.
+    let low_images = geometry.phases * geometry.image_bytes();
+    for phase in 0..geometry.phases {
+        // SAFETY: the images lie inside the buffer (`geometry.bytes() <= BAND_BYTES`).
+        let high = unsafe { base.add(phase * geometry.image_bytes()) };
+        let low = unsafe { high.add(low_images) };
+        for image_row in 0..geometry.image_rows {
+            let padded_row = (top + image_row) * geometry.stride + phase;
+            let in_row = padded_row as isize - shape.padding_height as isize;
+            let at = image_row * row_bytes;
+            // SAFETY (both): the row lies inside each image.
+            let to = unsafe { (high.add(at), low.add(at)) };
+            if !(0..in_height as isize).contains(&in_row) || first == end {
                 unsafe {
+                    to.0.write_bytes(0, row_bytes);
+                    to.1.write_bytes(0, row_bytes);
+                }
+                continue;
+            }
+            let first_pixel = in_row as usize * in_width + (first as isize + shift) as usize;
+            // SAFETY: the row lies inside each image; the inside pixels are the input's.
+            unsafe {
+                for to in [to.0, to.1] {
                     to.write_bytes(0, first * pitch);
-                    copy_pixels(from, in_channels, to.add(first * pitch), pitch);
                     to.add(end * pitch)
                         .write_bytes(0, (row_pixels - end) * pitch);
                 }
+                let rows = (to.0.add(first * pitch), to.1.add(first * pitch));
+                input.copy_digits(shape, (first_pixel, end - first), rows, pitch);
             }
-            let copied = geometry.image_rows * row_pixels * pitch;
-            // SAFETY: the slack lies inside the image.
-            unsafe {
-                image
-                    .add(copied)
-                    .write_bytes(0, geometry.image_bytes() - copied)
-            };
+        }
+        let copied = geometry.image_rows * row_bytes;
+        // SAFETY: the slack lies inside each image.
+        unsafe {
+            high.add(copied)
+                .write_bytes(0, geometry.image_bytes() - copied);
+            low.add(copied)
+                .write_bytes(0, geometry.image_bytes() - copied);
         }
     }
 }
@@ -502,23 +679,29 @@ unsafe fn copy_pixels(from: &[i8], in_channels: usize, to: *mut u8, pitch: usize
 #[inline(always)]
 unsafe fn pack_partial_step(
     shape: &ConvShape,
+    channels: usize,
     weight: &[i8],
     channel: usize,
     packed: &mut [TileBuffer; 2 * MAX_PARTIAL_TAPS],
 ) {
     let taps = shape.kernel_height * shape.kernel_width;
-    let first_quad = shape.in_channels / CHANNELS_PER_STEP * ROWS;
-    let quads = shape.in_channels / QUAD - first_quad;
+    let first_quad = channels / CHANNELS_PER_STEP * ROWS;
+    let quads = channels / QUAD - first_quad;
     for tap in 0..taps {
         for (tile, buffer) in packed[2 * tap..2 * tap + 2].iter_mut().enumerate() {
             let channels = channel + tile * SUM_COLUMNS;
             for row in 0..ROWS {
-                let to = &mut buffer.0[row * ROW_BYTES..][..ROW_BYTES];
-                if row < quads {
-                    let from = shape.int8_index(tap, (first_quad + row) * QUAD, channels);
-                    to.copy_from_slice(bytemuck::cast_slice(&weight[from..][..ROW_BYTES]));
-                } else {
-                    to.fill(0);
+                // SAFETY: the row is 64 bytes of the buffer; the quad's 16 channels are
+                // inside `weight` (the caller's promise).
+                unsafe {
+                    let to = buffer.as_mut_ptr().add(row * ROW_BYTES);
+                    if row < quads {
+                        let from = shape.int8_index(tap, (first_quad + row) * QUAD, channels);
+                        let from = weight[from..][..ROW_BYTES].as_ptr().cast();
+                        core::ptr::copy_nonoverlapping(from, to, ROW_BYTES);
+                    } else {
+                        to.write_bytes(0, ROW_BYTES);
+                    }
                 }
             }
         }
@@ -532,7 +715,7 @@ unsafe fn pack_partial_step(
 /// Tiles configured as [`TILE_CONFIG`] says; the band was filled for `geometry`; the block's
 /// channels are inside `weight`; `packed` holds the partial step's tiles when there is one.
 #[inline(always)]
-unsafe fn tile_sums(
+unsafe fn tile_sums<I: BandInput>(
     shape: &ConvShape,
     geometry: &Band,
     band: &BandBuffer,
@@ -543,8 +726,9 @@ unsafe fn tile_sums(
     let stride = geometry.stride;
     let pitch = geometry.pitch;
     let row_step = stride * pitch;
-    let full_steps = shape.in_channels / CHANNELS_PER_STEP;
-    let quads = shape.in_channels / QUAD;
+    // Whole quads: the weights' quads, zero-padded past the input channels.
+    let quads = int8_quads(shape.in_channels);
+    let full_steps = quads / ROWS;
     let quad_stride = int8_quad_stride(shape.out_channels, channel);
     let weights = weight[shape.int8_index(0, 0, channel)..]
         .as_ptr()
@@ -578,16 +762,18 @@ unsafe fn tile_sums(
                     multiply_step(
                         (high.add(channels), low.add(channels), row_step),
                         (rows, quad_stride),
+                        I::SIGNED_HIGH,
                     )
                 };
             }
-            if full_steps * CHANNELS_PER_STEP < shape.in_channels {
+            if full_steps * ROWS < quads {
                 let channels = full_steps * CHANNELS_PER_STEP;
                 let (first, second) = (&packed[2 * tap], &packed[2 * tap + 1]);
                 unsafe {
                     multiply_step_tiles(
                         (high.add(channels), low.add(channels), row_step),
-                        (first.0.as_ptr(), second.0.as_ptr(), ROW_BYTES),
+                        (first.as_ptr(), second.as_ptr(), ROW_BYTES),
+                        I::SIGNED_HIGH,
                     )
                 };
             }
@@ -609,10 +795,10 @@ unsafe fn store_sums(sums: &mut BlockSums) {
             "tilestored [{s1} + {stride}], tmm1",
             "tilestored [{s2} + {stride}], tmm2",
             "tilestored [{s3} + {stride}], tmm3",
-            s0 = in(reg) s0.0.as_mut_ptr(),
-            s1 = in(reg) s1.0.as_mut_ptr(),
-            s2 = in(reg) s2.0.as_mut_ptr(),
-            s3 = in(reg) s3.0.as_mut_ptr(),
+            s0 = in(reg) s0.as_mut_ptr(),
+            s1 = in(reg) s1.as_mut_ptr(),
+            s2 = in(reg) s2.as_mut_ptr(),
+            s3 = in(reg) s3.as_mut_ptr(),
             stride = in(reg) ROW_BYTES,
             options(nostack, preserves_flags)
         );
@@ -630,12 +816,14 @@ unsafe fn store_sums(sums: &mut BlockSums) {
 unsafe fn multiply_step(
     (high, low, row_step): (*const u8, *const u8, usize),
     (weights, quad_stride): (*const u8, usize),
+    signed_high: bool,
 ) {
     // SAFETY: the caller's promises.
     unsafe {
         multiply_step_tiles(
             (high, low, row_step),
             (weights, weights.add(SUM_COLUMNS * QUAD), quad_stride),
+            signed_high,
         )
     }
 }
@@ -650,26 +838,39 @@ unsafe fn multiply_step(
 unsafe fn multiply_step_tiles(
     (high, low, row_step): (*const u8, *const u8, usize),
     (first, second, weight_step): (*const u8, *const u8, usize),
+    signed_high: bool,
 ) {
+    // Each activation tile is loaded just before its first product, so the unit can start
+    // on the high digits while the low ones load; the high digits of signed codes take the
+    // signed-by-signed product.
+    macro_rules! step {
+        ($high_product:literal) => {
+            asm!(
+                "tileloadd tmm4, [{high} + {row_step}]",
+                "tileloadd tmm6, [{first} + {weight_step}]",
+                concat!($high_product, " tmm0, tmm4, tmm6"),
+                "tileloadd tmm7, [{second} + {weight_step}]",
+                concat!($high_product, " tmm1, tmm4, tmm7"),
+                "tileloadd tmm5, [{low} + {row_step}]",
+                "tdpbusd tmm2, tmm5, tmm6",
+                "tdpbusd tmm3, tmm5, tmm7",
+                high = in(reg) high,
+                low = in(reg) low,
+                row_step = in(reg) row_step,
+                first = in(reg) first,
+                second = in(reg) second,
+                weight_step = in(reg) weight_step,
+                options(nostack, readonly, preserves_flags)
+            )
+        };
+    }
     // SAFETY: the caller's promises.
     unsafe {
-        asm!(
-            "tileloadd tmm4, [{high} + {row_step}]",
-            "tileloadd tmm6, [{first} + {weight_step}]",
-            "tdpbusd tmm0, tmm4, tmm6",
-            "tileloadd tmm7, [{second} + {weight_step}]",
-            "tdpbusd tmm1, tmm4, tmm7",
-            "tileloadd tmm5, [{low} + {row_step}]",
-            "tdpbusd tmm2, tmm5, tmm6",
-            "tdpbusd tmm3, tmm5, tmm7",
-            high = in(reg) high,
-            low = in(reg) low,
-            row_step = in(reg) row_step,
-            first = in(reg) first,
-            second = in(reg) second,
-            weight_step = in(reg) weight_step,
-            options(nostack, readonly, preserves_flags)
-        );
+        if signed_high {
+            step!("tdpbssd")
+        } else {
+            step!("tdpbusd")
+        }
     }
 }
 
@@ -734,8 +935,8 @@ impl Epilogue<'_> {
                 // SAFETY: AVX-512F; each sum buffer row is 64 aligned bytes; 16 floats from
                 // `channels` in each slice.
                 unsafe {
-                    let high = _mm512_load_si512(sums[vector].0[at..].as_ptr().cast());
-                    let low = _mm512_load_si512(sums[2 + vector].0[at..].as_ptr().cast());
+                    let high = _mm512_load_si512(sums[vector].as_ptr().add(at).cast());
+                    let low = _mm512_load_si512(sums[2 + vector].as_ptr().add(at).cast());
                     let rounded = if self.i32_exact {
                         // The shift by 7 is the multiplication by the digit base.
                         const { assert!(DIGIT_BASE == (1 << 7) as f32) };
@@ -870,7 +1071,7 @@ impl Kernels for Amx {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        self.avx512.conv_int8_codes(
+        if !self.conv_int8_codes_on_tiles(
             shape,
             input,
             weight,
@@ -878,7 +1079,17 @@ impl Kernels for Amx {
             bias,
             output,
             accumulate,
-        )
+        ) {
+            self.avx512.conv_int8_codes(
+                shape,
+                input,
+                weight,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            )
+        }
     }
 
     fn matvec_int8_codes(
