@@ -4,8 +4,9 @@
 //! its transposed upsampling convolution, and the FiLM matrix-vector products of f32 weights
 //! (int8 ones multiply codes, in `int8`). Their weights are read at every denoising step, so
 //! these kernels read each weight once per call where they can:
-//! - on sequences of up to 8 positions, each weight row is streamed in memory order and
-//!   applied to every position (62 MB of f32 weights come from DRAM at every step);
+//! - on sequences of up to 16 positions (all of the product models'), the weights are
+//!   streamed in memory order, a block of eight rows applied to every position while the
+//!   sums sit in registers (59 MB of f32 weights come from L3 at every step);
 //! - longer sequences use a register tile of 4 positions x 2 vectors of channels.
 //!
 //! The int8 convolutions of the U-Net take int8 activations: `sequence_int8`.
@@ -233,9 +234,9 @@ const STREAMING_PREFETCH: usize = 8192;
 /// rows, 16 MB a step, one stream as the int8 ones: `int8::MATVEC_PREFETCH`).
 const MATVEC_PREFETCH: usize = 4096;
 
-/// Up to this many output positions, f32 weights are streamed ([`convolve_streaming`]);
-/// longer sequences reuse each weight enough for the register tiles to win.
-const STREAMING_POSITIONS: usize = 8;
+/// Up to this many output positions (every U-Net layer of the product models), f32
+/// weights are streamed ([`convolve_streaming`]); longer sequences use the register tiles.
+const STREAMING_POSITIONS: usize = 16;
 
 /// [`convolve`] with f32 weights, by whichever loop is faster for the sequence length.
 ///
@@ -263,11 +264,16 @@ unsafe fn convolve_f32<L: Lanes>(
     }
 }
 
-/// [`convolve`] for f32 weights, read strictly in memory order: each weight row is applied
-/// to every output position before the next, the sums kept in `output` (in the L1 cache).
-/// With f32 weights the U-Net's layers come from DRAM at every step, and one sequential
-/// stream is what the hardware prefetcher serves best (measured: the register tiles, which
-/// walk rows `out_channels` apart, ran 2-4x slower than this on cold weights).
+/// [`convolve`] for f32 weights, read strictly in memory order: a block of
+/// [`STREAMED_ROWS`] weight rows (input channels, `out_channels` weights each, contiguous)
+/// is applied to every output position and channel before the next block, each vector of
+/// channels' sums for all positions held in registers across the block's rows. With f32
+/// weights the U-Net's layers come from L3 at every step, and one sequential stream is
+/// what the hardware prefetcher serves best (measured: the register tiles, which walk rows
+/// `out_channels` apart, ran 2-4x slower than this on cold weights). Every output's sum is
+/// one chain from the bias, in tap and input-channel order, as before the rows were
+/// blocked: updating the sums in memory once per row (a load and a store per position and
+/// vector for every row) held the sequences of 8 and 16 positions to 9-12 GB/s of weights.
 ///
 /// # Safety
 /// The CPU supports `L`.
@@ -285,6 +291,7 @@ unsafe fn convolve_streaming<L: Lanes>(
 ) {
     let (in_channels, out_channels) = (sequence.in_channels, sequence.out_channels);
     sequence.assert_lengths(input.len(), weight.len(), output.len(), bias.len());
+    assert!(sequence.positions <= STREAMING_POSITIONS);
     for position in 0..sequence.positions {
         let row = sequence.out_first + position * sequence.out_step;
         let out = &mut output[row * out_channels..][..out_channels];
@@ -296,52 +303,152 @@ unsafe fn convolve_streaming<L: Lanes>(
     for index in 0..sequence.taps {
         let (tap, offset) = sequence.tap(index);
         let (start, end) = sequence.inside(offset, 0, sequence.positions);
+        if start >= end {
+            continue;
+        }
         let block = &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
-        for (c, weights) in block.chunks_exact(out_channels).enumerate() {
-            prefetch_lines(
-                weights.as_ptr().wrapping_byte_add(STREAMING_PREFETCH),
-                size_of_val(weights),
-            );
-            for position in start..end {
-                let input_row = (position * sequence.stride) as isize + offset;
-                let x = input[input_row as usize * in_channels + c];
-                let row = sequence.out_first + position * sequence.out_step;
-                // SAFETY: the caller runs on `L`'s CPU.
+        let input_row = (start * sequence.stride) as isize + offset;
+        let tap_input = &input[input_row as usize * in_channels..];
+        let out = &mut output[(sequence.out_first + start * sequence.out_step) * out_channels..];
+        let strides = (
+            sequence.stride * in_channels,
+            sequence.out_step * out_channels,
+        );
+        macro_rules! positions {
+            ($($count:literal => ($first:literal, $second:literal)),*) => {
+                match end - start {
+                    $(
+                        // SAFETY: the caller runs on `L`'s CPU; `inside` keeps the tap's
+                        // input rows of these positions inside the input, and the asserts
+                        // above their output rows inside the output.
+                        $count => unsafe {
+                            stream_tap::<L, $first, $second>(
+                                block,
+                                (tap_input, out),
+                                strides,
+                                (in_channels, out_channels),
+                            )
+                        },
+                    )*
+                    _ => unreachable!(),
+                }
+            };
+        }
+        positions!(
+            1 => (1, 0), 2 => (2, 0), 3 => (3, 0), 4 => (4, 0), 5 => (5, 0), 6 => (6, 0),
+            7 => (7, 0), 8 => (8, 0), 9 => (8, 1), 10 => (8, 2), 11 => (8, 3), 12 => (8, 4),
+            13 => (8, 5), 14 => (8, 6), 15 => (8, 7), 16 => (8, 8)
+        );
+    }
+}
+
+/// Input channels whose weight rows [`convolve_streaming`] applies while the sums stay in
+/// registers: eight rows of 256 channels are 8 KB of one stream.
+const STREAMED_ROWS: usize = 8;
+
+/// One tap of [`convolve_streaming`] for `P + Q` consecutive output positions: `out[p] +=
+/// sum_c input[p, c] block[c]`, `input` and `out` from the first position's rows, the
+/// positions `strides` floats apart in each. The first `P` positions' sums, then the other
+/// `Q`'s, stay in registers over a block of rows (up to 8 of each: 16 sums spilled).
+///
+/// # Safety
+/// The CPU supports `L`; `input` holds each position's `in_channels` values and `out` its
+/// `out_channels` sums; `block` is `[in_channels, out_channels]`.
+#[inline(always)]
+unsafe fn stream_tap<L: Lanes, const P: usize, const Q: usize>(
+    block: &[f32],
+    (input, out): (&[f32], &mut [f32]),
+    (input_stride, out_stride): (usize, usize),
+    (in_channels, out_channels): (usize, usize),
+) {
+    let positions = P + Q;
+    assert!(input.len() > (positions - 1) * input_stride + in_channels - 1);
+    assert!(out.len() >= (positions - 1) * out_stride + out_channels);
+    let vector_channels = out_channels - out_channels % L::WIDTH;
+    let (input, out) = (input.as_ptr(), out.as_mut_ptr());
+    for first_row in (0..in_channels).step_by(STREAMED_ROWS) {
+        let rows = (in_channels - first_row).min(STREAMED_ROWS);
+        let weights = block[first_row * out_channels..][..rows * out_channels].as_ptr();
+        let ahead = weights.wrapping_byte_add(STREAMING_PREFETCH);
+        for channel in (0..vector_channels).step_by(L::WIDTH) {
+            // The lines `STREAMING_PREFETCH` ahead of the ones this vector reads, spread over
+            // the loop (asked for all at once, they filled the line buffers and stalled it).
+            for row in 0..rows {
+                prefetch_lines(ahead.wrapping_add(row * out_channels + channel), 1);
+            }
+            let lanes = weights.wrapping_add(channel);
+            let at = (first_row, channel);
+            let strides = (input_stride, out_stride);
+            let rows = (rows, out_channels);
+            // SAFETY: the rows and channels are inside `block`, the positions' sums inside
+            // `out` and their values inside `input` (asserted above); the caller runs on
+            // `L`'s CPU.
+            unsafe {
+                stream_positions::<L, P>((input, out), strides, lanes, at, rows);
+                if Q > 0 {
+                    let input = input.add(P * input_stride);
+                    let out = out.add(P * out_stride);
+                    stream_positions::<L, Q>((input, out), strides, lanes, at, rows);
+                }
+            }
+        }
+        if vector_channels < out_channels {
+            let tail = (out_channels - vector_channels) * size_of::<f32>();
+            for row in 0..rows {
+                prefetch_lines(
+                    ahead.wrapping_add(row * out_channels + vector_channels),
+                    tail,
+                );
+            }
+        }
+        // The channels past the last whole vector (the narrow noise head), one at a time in
+        // the same order.
+        for channel in vector_channels..out_channels {
+            for row in 0..rows {
+                // SAFETY: as above.
                 unsafe {
-                    add_multiple::<L>(
-                        &mut output[row * out_channels..][..out_channels],
-                        x,
-                        weights,
-                    )
-                };
+                    let w = *weights.add(row * out_channels + channel);
+                    for p in 0..positions {
+                        let x = *input.add(p * input_stride + first_row + row);
+                        *out.add(p * out_stride + channel) += x * w;
+                    }
+                }
             }
         }
     }
 }
 
-/// `out += x * weights` (equal lengths).
+/// `out[p, channel..+WIDTH] += sum_r input[p, first_row + r] lanes[r]` for `P` positions and
+/// `rows` weight rows (`lanes`: the first row's vector, rows `out_channels` apart), the sums
+/// in registers from the load to the store.
 ///
 /// # Safety
-/// The CPU supports `L`.
+/// The CPU supports `L`; every pointer covers what it is read or written at.
 #[inline(always)]
-unsafe fn add_multiple<L: Lanes>(out: &mut [f32], x: f32, weights: &[f32]) {
-    // SAFETY: the caller runs on `L`'s CPU.
-    let splat = unsafe { L::splat(x) };
-    let mut out_chunks = out.chunks_exact_mut(L::WIDTH);
-    let mut weight_chunks = weights.chunks_exact(L::WIDTH);
-    for (o, w) in (&mut out_chunks).zip(&mut weight_chunks) {
-        // SAFETY: both chunks hold WIDTH floats; the caller runs on `L`'s CPU.
-        unsafe {
-            let sum = L::fma(splat, L::load(w.as_ptr()), L::load(o.as_ptr()));
-            L::store(o.as_mut_ptr(), sum);
+unsafe fn stream_positions<L: Lanes, const P: usize>(
+    (input, out): (*const f32, *mut f32),
+    (input_stride, out_stride): (usize, usize),
+    lanes: *const f32,
+    (first_row, channel): (usize, usize),
+    (rows, out_channels): (usize, usize),
+) {
+    // SAFETY (this block): the caller's promises. Loops, not `array::from_fn`: a closure
+    // does not inherit the caller's target features, and its intrinsics would become calls.
+    unsafe {
+        let mut sums = [L::zero(); P];
+        for (p, sum) in sums.iter_mut().enumerate() {
+            *sum = L::load(out.add(p * out_stride + channel));
         }
-    }
-    for (o, &w) in out_chunks
-        .into_remainder()
-        .iter_mut()
-        .zip(weight_chunks.remainder())
-    {
-        *o += x * w;
+        for row in 0..rows {
+            let weights = L::load(lanes.add(row * out_channels));
+            for (p, sum) in sums.iter_mut().enumerate() {
+                let x = L::splat(*input.add(p * input_stride + first_row + row));
+                *sum = L::fma(x, weights, *sum);
+            }
+        }
+        for (p, sum) in sums.iter().enumerate() {
+            L::store(out.add(p * out_stride + channel), *sum);
+        }
     }
 }
 
