@@ -45,7 +45,7 @@ unsafe fn conv_tiles(
     accumulate: Accumulate,
 ) {
     // SAFETY: this function's contract is the body's.
-    unsafe { f32_tile::conv::<Ymm, PIXELS>(shape, parameters, output, accumulate) }
+    unsafe { f32_tile::conv::<Ymm, PIXELS, 2>(shape, parameters, output, accumulate) }
 }
 
 /// [`f32_tile::conv_pixel`] compiled for AVX2 + FMA.

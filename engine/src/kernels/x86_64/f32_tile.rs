@@ -3,22 +3,20 @@
 //! `#[target_feature]` wrapper, where `#[inline(always)]` lets the intrinsics compile with
 //! that backend's instructions.
 //!
-//! A tile is `N` consecutive output positions (row-major, wrapping onto the next row) x two
-//! vectors of output channels. Per input channel and tap, two weight loads feed two FMAs per
+//! A tile is `N` consecutive output positions (row-major, wrapping onto the next row) x `V`
+//! vectors of output channels. Per input channel and tap, `V` weight loads feed `V` FMAs per
 //! pixel whose tap is inside the input ([`tap_offsets`]); padding taps are skipped per pixel as the scalar reference skips
 //! them. Every pixel is therefore one FMA chain over its inside taps, in tap and
 //! input-channel order from zero, then the bias is added, whichever tile computes it: the
 //! single-pixel path ([`conv_pixel`]) is the one-pixel tile and gives the same bits.
 
-use core::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-
 use super::lanes::Lanes;
 
-use super::tap_offsets;
+use super::{prefetch_lines, tap_offsets};
 use crate::kernels::{Accumulate, ConvShape};
 
 /// Output positions `first .. first + count` (`count <= N`, row-major over the output map,
-/// so a tile may wrap onto the next row and small maps fill whole tiles) x `2 WIDTH`
+/// so a tile may wrap onto the next row and small maps fill whole tiles) x `V WIDTH`
 /// channels from `channel`: `sums` (zero, or the partial sums of the taps before) plus the
 /// products of `taps`.
 ///
@@ -30,15 +28,15 @@ use crate::kernels::{Accumulate, ConvShape};
 ///
 /// # Safety
 /// The CPU supports `L`; the slices have the lengths `shape` implies; the pixels are in the
-/// output; `channel + 2 WIDTH <= out_channels`.
+/// output; `channel + V WIDTH <= out_channels`.
 #[inline(always)]
-unsafe fn tile<L: Lanes, const N: usize>(
+unsafe fn tile<L: Lanes, const N: usize, const V: usize>(
     shape: &ConvShape,
     (input, weight): (&[f32], &[f32]),
     (first, count): (usize, usize),
     channel: usize,
-    (taps, mut sums): (Taps, [[L::Vector; 2]; N]),
-) -> [[L::Vector; 2]; N] {
+    (taps, mut sums): (Taps, [[L::Vector; V]; N]),
+) -> [[L::Vector; V]; N] {
     let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
     let kernel_width = shape.kernel_width;
     let out_width = shape.out_width();
@@ -62,7 +60,7 @@ unsafe fn tile<L: Lanes, const N: usize>(
             // SAFETY: every used pixel's run of the kernel row is inside the input; the
             // caller's promises cover the rest.
             unsafe {
-                accumulate_run::<L, N>(&mut sums, (input, weight), row_first, run, out_channels)
+                accumulate_run::<L, N, V>(&mut sums, (input, weight), row_first, run, out_channels)
             };
             continue;
         }
@@ -74,7 +72,7 @@ unsafe fn tile<L: Lanes, const N: usize>(
             );
             // SAFETY: `tap_offsets` gives pixels inside the input, or `None`.
             unsafe {
-                accumulate_run::<L, N>(&mut sums, (input, weight), offsets, run, out_channels)
+                accumulate_run::<L, N, V>(&mut sums, (input, weight), offsets, run, out_channels)
             };
         }
     }
@@ -115,10 +113,10 @@ const PREFETCH_ROWS: usize = 8;
 ///
 /// # Safety
 /// The CPU supports `L`; each `Some` offset starts `length` input values; the weight rows
-/// `first_weight + i out_channels .. + 2 WIDTH` for `i < length` are inside `weight`.
+/// `first_weight + i out_channels .. + V WIDTH` for `i < length` are inside `weight`.
 #[inline(always)]
-unsafe fn accumulate_run<L: Lanes, const N: usize>(
-    sums: &mut [[L::Vector; 2]; N],
+unsafe fn accumulate_run<L: Lanes, const N: usize, const V: usize>(
+    sums: &mut [[L::Vector; V]; N],
     (input, weight): (&[f32], &[f32]),
     offsets: [Option<usize>; N],
     (first_weight, length): (usize, usize),
@@ -128,25 +126,29 @@ unsafe fn accumulate_run<L: Lanes, const N: usize>(
     let offsets = offsets.map(|offset| offset.unwrap_or(usize::MAX));
     for index in 0..length {
         // SAFETY: each offset other than usize::MAX starts `length` input values; the weight
-        // row of 2 WIDTH channels is inside `weight` (the caller's promises).
+        // row of V WIDTH channels is inside `weight` (the caller's promises).
         unsafe {
             let row = weight.as_ptr().add(first_weight + index * out_channels);
             // Rows lie `out_channels` floats apart, a power of two that crowds them into a
             // few L1 sets, so most come from L2: ask for them a few rows ahead. A hint only
             // (it never faults), hence the wrapping address.
             let ahead = row.wrapping_add(PREFETCH_ROWS * out_channels);
-            _mm_prefetch::<_MM_HINT_T0>(ahead.cast());
-            _mm_prefetch::<_MM_HINT_T0>(ahead.wrapping_add(L::WIDTH).cast());
-            let low = L::load(row);
-            let high = L::load(row.add(L::WIDTH));
+            for vector in 0..V {
+                prefetch_lines(ahead.wrapping_add(vector * L::WIDTH), 1);
+            }
+            let mut lanes = [L::zero(); V];
+            for (vector, lane) in lanes.iter_mut().enumerate() {
+                *lane = L::load(row.add(vector * L::WIDTH));
+            }
             let values = input.as_ptr().add(index);
             for (&offset, sum) in offsets.iter().zip(sums.iter_mut()) {
                 if !inside && offset == usize::MAX {
                     continue;
                 }
                 let value = L::splat(*values.add(offset));
-                sum[0] = L::fma(value, low, sum[0]);
-                sum[1] = L::fma(value, high, sum[1]);
+                for (sum, &lane) in sum.iter_mut().zip(&lanes) {
+                    *sum = L::fma(value, lane, *sum);
+                }
             }
         }
     }
@@ -156,22 +158,22 @@ unsafe fn accumulate_run<L: Lanes, const N: usize>(
 /// of a tile from `first_pixel`.
 ///
 /// # Safety
-/// The CPU supports `L`; `channel + 2 WIDTH <= out_channels`; the pixels are inside
+/// The CPU supports `L`; `channel + V WIDTH <= out_channels`; the pixels are inside
 /// `output`.
 #[inline(always)]
-unsafe fn store_tile<L: Lanes>(
-    sums: &[[L::Vector; 2]],
+unsafe fn store_tile<L: Lanes, const V: usize>(
+    sums: &[[L::Vector; V]],
     (bias, output): (&[f32], &mut [f32]),
     out_channels: usize,
     (first_pixel, channel): (usize, usize),
     accumulate: Accumulate,
 ) {
-    let bias = &bias[channel..channel + 2 * L::WIDTH];
+    let bias = &bias[channel..channel + V * L::WIDTH];
     for (pixel, sum) in sums.iter().enumerate() {
-        let out = &mut output[(first_pixel + pixel) * out_channels + channel..][..2 * L::WIDTH];
+        let out = &mut output[(first_pixel + pixel) * out_channels + channel..][..V * L::WIDTH];
         for (half, &value) in sum.iter().enumerate() {
             let at = L::WIDTH * half;
-            // SAFETY: `out` and `bias` hold 2 WIDTH floats; each access covers WIDTH from
+            // SAFETY: `out` and `bias` hold V WIDTH floats; each access covers WIDTH from
             // `at`; the caller runs on `L`'s CPU.
             unsafe {
                 let mut value = L::add(value, L::load(bias.as_ptr().add(at)));
@@ -236,9 +238,9 @@ fn pass_taps(shape: &ConvShape, (row_chunks, column_chunks): (usize, usize), par
 ///
 /// # Safety
 /// The CPU supports `L`; the slices have the lengths `shape` implies; `out_channels` is a
-/// multiple of `2 WIDTH`.
+/// multiple of `V WIDTH`.
 #[inline(always)]
-pub(crate) unsafe fn conv<L: Lanes, const N: usize>(
+pub(crate) unsafe fn conv<L: Lanes, const N: usize, const V: usize>(
     shape: &ConvShape,
     (input, weight, bias): (&[f32], &[f32], &[f32]),
     output: &mut [f32],
@@ -247,12 +249,12 @@ pub(crate) unsafe fn conv<L: Lanes, const N: usize>(
     let positions = shape.out_height() * shape.out_width();
     let out_channels = shape.out_channels;
     // Each pixel's FMA chain goes on across passes in the same order: the same bits as one.
-    let chunks = passes(shape, 2 * L::WIDTH, accumulate);
+    let chunks = passes(shape, V * L::WIDTH, accumulate);
     let parts = chunks.0 * chunks.1;
     // Channel blocks outside, pixels inside: a block's weights stay in the L2 cache while
     // every pixel reads them, instead of the whole kernel being streamed from L3 once per
     // pixel tile.
-    for channel in (0..out_channels).step_by(2 * L::WIDTH) {
+    for channel in (0..out_channels).step_by(V * L::WIDTH) {
         for part in 0..parts {
             let taps = pass_taps(shape, chunks, part);
             let last = part + 1 == parts;
@@ -262,18 +264,24 @@ pub(crate) unsafe fn conv<L: Lanes, const N: usize>(
                 // the output and the channel block inside `out_channels`.
                 unsafe {
                     let start = if part == 0 {
-                        [[L::zero(); 2]; N]
+                        [[L::zero(); V]; N]
                     } else {
-                        load_partial::<L, N>(output, out_channels, (first, count), channel)
+                        load_partial::<L, N, V>(output, out_channels, (first, count), channel)
                     };
                     let taps = (taps.clone(), start);
-                    let sums = tile::<L, N>(shape, (input, weight), (first, count), channel, taps);
+                    let sums =
+                        tile::<L, N, V>(shape, (input, weight), (first, count), channel, taps);
                     if last {
                         let at = (first, channel);
                         let out = (bias, &mut *output);
-                        store_tile::<L>(&sums[..count], out, out_channels, at, accumulate);
+                        store_tile::<L, V>(&sums[..count], out, out_channels, at, accumulate);
                     } else {
-                        store_partial::<L>(&sums[..count], output, out_channels, (first, channel));
+                        store_partial::<L, V>(
+                            &sums[..count],
+                            output,
+                            out_channels,
+                            (first, channel),
+                        );
                     }
                 }
             }
@@ -284,21 +292,21 @@ pub(crate) unsafe fn conv<L: Lanes, const N: usize>(
 /// The partial sums [`store_partial`] left for the tile's `count` pixels (zero past them).
 ///
 /// # Safety
-/// The CPU supports `L`; the pixels and the block's `2 WIDTH` channels are in `output`.
+/// The CPU supports `L`; the pixels and the block's `V WIDTH` channels are in `output`.
 #[inline(always)]
-unsafe fn load_partial<L: Lanes, const N: usize>(
+unsafe fn load_partial<L: Lanes, const N: usize, const V: usize>(
     output: &[f32],
     out_channels: usize,
     (first, count): (usize, usize),
     channel: usize,
-) -> [[L::Vector; 2]; N] {
+) -> [[L::Vector; V]; N] {
     // SAFETY: the caller runs on `L`'s CPU.
-    let mut sums = [[unsafe { L::zero() }; 2]; N];
+    let mut sums = [[unsafe { L::zero() }; V]; N];
     for (pixel, sum) in sums.iter_mut().enumerate().take(count) {
-        let from = &output[(first + pixel) * out_channels + channel..][..2 * L::WIDTH];
-        // SAFETY: `from` holds 2 WIDTH floats; the caller runs on `L`'s CPU.
-        unsafe {
-            *sum = [L::load(from.as_ptr()), L::load(from.as_ptr().add(L::WIDTH))];
+        let from = &output[(first + pixel) * out_channels + channel..][..V * L::WIDTH];
+        for (vector, sum) in sum.iter_mut().enumerate() {
+            // SAFETY: `from` holds V WIDTH floats; the caller runs on `L`'s CPU.
+            *sum = unsafe { L::load(from.as_ptr().add(vector * L::WIDTH)) };
         }
     }
     sums
@@ -307,20 +315,19 @@ unsafe fn load_partial<L: Lanes, const N: usize>(
 /// Stores a tile's partial sums, without the bias, where [`load_partial`] finds them.
 ///
 /// # Safety
-/// The CPU supports `L`; the pixels and the block's `2 WIDTH` channels are in `output`.
+/// The CPU supports `L`; the pixels and the block's `V WIDTH` channels are in `output`.
 #[inline(always)]
-unsafe fn store_partial<L: Lanes>(
-    sums: &[[L::Vector; 2]],
+unsafe fn store_partial<L: Lanes, const V: usize>(
+    sums: &[[L::Vector; V]],
     output: &mut [f32],
     out_channels: usize,
     (first, channel): (usize, usize),
 ) {
     for (pixel, sum) in sums.iter().enumerate() {
-        let to = &mut output[(first + pixel) * out_channels + channel..][..2 * L::WIDTH];
-        // SAFETY: `to` holds 2 WIDTH floats; the caller runs on `L`'s CPU.
-        unsafe {
-            L::store(to.as_mut_ptr(), sum[0]);
-            L::store(to.as_mut_ptr().add(L::WIDTH), sum[1]);
+        let to = &mut output[(first + pixel) * out_channels + channel..][..V * L::WIDTH];
+        for (vector, &sum) in sum.iter().enumerate() {
+            // SAFETY: `to` holds V WIDTH floats; the caller runs on `L`'s CPU.
+            unsafe { L::store(to.as_mut_ptr().add(vector * L::WIDTH), sum) };
         }
     }
 }
@@ -342,7 +349,7 @@ pub(crate) unsafe fn conv_pixel<L: Lanes>(
             let position = pixel.0 * shape.out_width() + pixel.1;
             // The whole kernel in one pass, as `conv` runs it when it does not chunk.
             let taps = pass_taps(shape, (1, 1), 0);
-            let sums = tile::<L, 1>(
+            let sums = tile::<L, 1, 2>(
                 shape,
                 (input, weight),
                 (position, 1),
@@ -350,7 +357,7 @@ pub(crate) unsafe fn conv_pixel<L: Lanes>(
                 (taps, [[L::zero(); 2]; 1]),
             );
             let out = (bias, &mut *output);
-            store_tile::<L>(
+            store_tile::<L, 2>(
                 &sums,
                 out,
                 shape.out_channels,
