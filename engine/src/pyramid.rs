@@ -2,6 +2,7 @@
 //! F1..F5 (SPEC section 2), once per frame.
 
 use crate::config::ModelConfig;
+use crate::config::PYRAMID_LEVELS;
 use crate::frame::{self, PATCH_CHANNELS, STEM_KERNEL, STEM_PADDING, STEM_STRIDE};
 use crate::kernels::ops::{self, Activation};
 use crate::kernels::{
@@ -43,6 +44,56 @@ fn conv_norm(
         Activations::Digits(quantized),
     );
     normalize(kernels, layer, shape, output, activation);
+}
+
+/// A trunk map as the layers reading it take it: the values, and for int8 weights their
+/// digit planes, quantized once for all the layers that read the map (a block's first
+/// convolution and its downsampling, and at a stage's start the level's projection, each
+/// quantized it again before).
+struct LayerInput<'v> {
+    values: &'v [f32],
+    digits: Option<DigitRows<'v>>,
+}
+
+impl LayerInput<'_> {
+    /// [`conv_norm`] on this input (`digits` hold it quantized whenever one of its readers
+    /// has int8 weights).
+    fn conv_norm(
+        &self,
+        kernels: &dyn Kernels,
+        layer: &ConvNorm<'_>,
+        shape: &ConvShape,
+        output: &mut [f32],
+        activation: Activation,
+    ) {
+        let output = &mut output[..shape.output_len()];
+        self.convolve(kernels, &layer.conv, shape, output);
+        normalize(kernels, layer, shape, output, activation);
+    }
+
+    /// The convolution of `conv` on this input, overwriting `output`.
+    fn convolve(
+        &self,
+        kernels: &dyn Kernels,
+        conv: &Conv<'_>,
+        shape: &ConvShape,
+        output: &mut [f32],
+    ) {
+        let output = &mut output[..shape.output_len()];
+        let overwrite = Accumulate::Overwrite;
+        match (conv.weight, &self.digits) {
+            (Weight::Int8 { values, scales }, Some(digits)) => {
+                kernels.conv_int8(shape, digits, values, scales, conv.bias, output, overwrite)
+            }
+            (Weight::Int8 { .. }, None) => {
+                unreachable!("an input read by int8 weights is quantized first")
+            }
+            (Weight::F32(values), _) => {
+                let input = &self.values[..shape.input_len()];
+                kernels.conv(shape, input, values, conv.bias, output, overwrite)
+            }
+        }
+    }
 }
 
 /// The norm and activation of [`conv_norm`], on the convolution's output in `output`.
@@ -326,55 +377,83 @@ pub fn encode(
     ];
 
     let mut quantized = scratch.quantized;
-    // Projects tap C(level + 1), or keeps it for on-demand projection.
-    let mut project = |level: usize, input: &[f32], quantized: &mut QuantizeScratch<'_>| {
-        let shape = projection_shape(config, level);
-        let projection = &weights.projections[level];
-        let store = frame.level(config, level);
-        if config.projection_on_demand(level) {
-            store.tap_scale[0] = kernels::store_input(
-                kernels,
-                &projection.weight,
-                &input[..shape.input_len()],
-                store.taps,
-            );
-            store.computed.fill(0);
-        } else {
-            kernels::convolve(
-                kernels,
-                &shape,
-                input,
-                &projection.weight,
-                projection.bias,
-                store.map,
-                Accumulate::Overwrite,
-                Activations::Digits(quantized),
-            );
-        }
-    };
-    project(0, buffers[0], &mut quantized);
-
     let (mut height, mut width) = (height, width);
     let mut channels = stem_channels;
     for (stage, blocks) in weights.stages.iter().enumerate() {
         let out_channels = config.stage_channels(stage);
-        for block in blocks {
+        for (index, block) in blocks.iter().enumerate() {
             let stride = if block.downsample.is_some() { 2 } else { 1 };
             let first_shape =
                 ConvShape::square((height, width, channels), out_channels, 3, stride, 1);
             let (out_height, out_width) = (first_shape.out_height(), first_shape.out_width());
             let second_shape =
                 ConvShape::square((out_height, out_width, out_channels), out_channels, 3, 1, 1);
+            let downsample_shape =
+                ConvShape::square((height, width, channels), out_channels, 1, 2, 0);
             let [input, middle, output, shortcut] = &mut buffers;
-            conv_norm(
+            let values = &input[..first_shape.input_len()];
+            // The layers reading the block's input: its first convolution, its downsampling
+            // and, at a stage's start, the projection of the level it is the tap of.
+            let level = (index == 0).then_some(stage);
+            let int8 = |conv: &Conv<'_>| matches!(conv.weight, Weight::Int8 { .. });
+            let readers_int8 = int8(&block.first.conv)
+                || block
+                    .downsample
+                    .as_ref()
+                    .is_some_and(|layer| int8(&layer.conv));
+            // An on-demand level keeps its input in the frame (quantized, for int8 weights)
+            // and the block's layers read those digits; a dense level is projected from the
+            // digits quantized here once for every reader.
+            let mut dense_map = None;
+            let mut digits = None;
+            if let Some(level) = level {
+                let projection = &weights.projections[level];
+                let LevelStore {
+                    map,
+                    taps,
+                    tap_scale,
+                    computed,
+                } = frame.level(config, level);
+                if config.projection_on_demand(level) {
+                    let (scale, nonnegative) =
+                        kernels::store_input(kernels, &projection.weight, values, taps);
+                    tap_scale[0] = scale;
+                    computed.fill(0);
+                    if int8(projection) {
+                        let bytes: &[i8] = bytemuck::cast_slice(&*taps);
+                        let planes = &bytes[..2 * values.len()];
+                        digits = Some(DigitRows::from_planes(planes, scale, nonnegative));
+                    }
+                } else {
+                    dense_map = Some((level, projection, map));
+                }
+            }
+            let needs_digits =
+                readers_int8 || dense_map.as_ref().is_some_and(|(_, conv, _)| int8(conv));
+            if digits.is_none() && needs_digits {
+                digits = Some(quantized.quantize(kernels, values));
+            }
+            let shared = LayerInput { values, digits };
+            if let Some((level, projection, map)) = dense_map {
+                let shape = projection_shape(config, level);
+                shared.convolve(kernels, projection, &shape, map);
+            }
+            shared.conv_norm(
                 kernels,
                 &block.first,
                 &first_shape,
-                input,
                 middle,
                 Activation::Relu,
-                &mut quantized,
             );
+            if let Some(downsample) = &block.downsample {
+                shared.conv_norm(
+                    kernels,
+                    downsample,
+                    &downsample_shape,
+                    shortcut,
+                    Activation::None,
+                );
+            }
             conv_norm(
                 kernels,
                 &block.second,
@@ -386,19 +465,7 @@ pub fn encode(
             );
             let output_len = second_shape.output_len();
             let identity: &[f32] = match &block.downsample {
-                Some(downsample) => {
-                    let shape = ConvShape::square((height, width, channels), out_channels, 1, 2, 0);
-                    conv_norm(
-                        kernels,
-                        downsample,
-                        &shape,
-                        input,
-                        shortcut,
-                        Activation::None,
-                        &mut quantized,
-                    );
-                    &shortcut[..output_len]
-                }
+                Some(_) => &shortcut[..output_len],
                 None => &input[..output_len],
             };
             kernels.add_activate(&mut output[..output_len], identity, Activation::Relu);
@@ -406,6 +473,27 @@ pub fn encode(
             buffers.swap(0, 2);
             (height, width, channels) = (out_height, out_width, out_channels);
         }
-        project(stage + 1, buffers[0], &mut quantized);
+    }
+    // The last tap has no block after it.
+    let level = PYRAMID_LEVELS - 1;
+    let shape = projection_shape(config, level);
+    let projection = &weights.projections[level];
+    let store = frame.level(config, level);
+    let values = &buffers[0][..shape.input_len()];
+    if config.projection_on_demand(level) {
+        let (scale, _) = kernels::store_input(kernels, &projection.weight, values, store.taps);
+        store.tap_scale[0] = scale;
+        store.computed.fill(0);
+    } else {
+        kernels::convolve(
+            kernels,
+            &shape,
+            values,
+            &projection.weight,
+            projection.bias,
+            store.map,
+            Accumulate::Overwrite,
+            Activations::Digits(&mut quantized),
+        );
     }
 }

@@ -599,22 +599,23 @@ pub fn convolve(
 
 /// Keeps a layer's input for later [`convolve_pixel`] calls, in the form its weights
 /// read: copied for f32 weights; quantized for int8 weights, the two digit planes as bytes
-/// at the front of `values`. Returns the input's scale (1 for f32 weights, unused).
+/// at the front of `values`. Returns the input's scale (1 for f32 weights, unused) and
+/// whether every code is nonnegative (true for f32 weights).
 pub fn store_input(
     kernels: &dyn Kernels,
     weight: &Weight<'_>,
     input: &[f32],
     values: &mut [f32],
-) -> f32 {
+) -> (f32, bool) {
     match weight {
         Weight::F32(_) => {
             values[..input.len()].copy_from_slice(input);
-            1.0
+            (1.0, true)
         }
         Weight::Int8 { .. } => {
             let bytes: &mut [i8] = bytemuck::cast_slice_mut(values);
             let (high, low) = bytes[..2 * input.len()].split_at_mut(input.len());
-            kernels.quantize_digits(input, (high, low)).0
+            kernels.quantize_digits(input, (high, low))
         }
     }
 }
