@@ -139,15 +139,23 @@ fn f32_benches(c: &mut Criterion) {
             ConvShape::square((8, 10, 512), 512, 3, 1, 1),
         ),
     ] {
-        let input: Vec<f32> = (0..shape.input_len()).map(|_| value()).collect();
-        let weight: Vec<f32> = (0..shape.weight_len()).map(|_| value()).collect();
+        // 64-byte aligned, as the arena and the weights file place them.
+        let mut aligned = |len: usize| {
+            let mut bytes = AlignedBytes::zeroed(len * size_of::<f32>());
+            let values: &mut [f32] = bytemuck::cast_slice_mut(bytes.as_mut_slice());
+            values.iter_mut().for_each(|v| *v = value());
+            bytes
+        };
+        let (input, weight) = (aligned(shape.input_len()), aligned(shape.weight_len()));
+        let input: &[f32] = bytemuck::cast_slice(input.as_slice());
+        let weight: &[f32] = bytemuck::cast_slice(weight.as_slice());
         let bias = vec![0.5f32; shape.out_channels];
         let mut output = vec![0.0f32; shape.output_len()];
         on_every_backend(c, format!("conv_f32/{name}"), &shape, |kernels| {
             kernels.conv(
                 &shape,
-                black_box(&input),
-                &weight,
+                black_box(input),
+                weight,
                 &bias,
                 &mut output,
                 Accumulate::Overwrite,
