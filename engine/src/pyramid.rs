@@ -33,17 +33,13 @@ fn conv_norm(
     activation: Activation,
     quantized: &mut QuantizeScratch<'_>,
 ) {
-    kernels::convolve(
-        kernels,
-        shape,
-        input,
-        &layer.conv.weight,
-        layer.conv.bias,
-        output,
-        Accumulate::Overwrite,
-        Activations::Digits(quantized),
-    );
-    normalize(kernels, layer, shape, output, activation);
+    let values = &input[..shape.input_len()];
+    let digits = is_int8(&layer.conv).then(|| quantized.quantize(kernels, values));
+    LayerInput { values, digits }.conv_norm(kernels, layer, shape, output, activation);
+}
+
+fn is_int8(conv: &Conv<'_>) -> bool {
+    matches!(conv.weight, Weight::Int8 { .. })
 }
 
 /// A trunk map as the layers reading it take it: the values, and for int8 weights their
@@ -395,12 +391,11 @@ pub fn encode(
             // The layers reading the block's input: its first convolution, its downsampling
             // and, at a stage's start, the projection of the level it is the tap of.
             let level = (index == 0).then_some(stage);
-            let int8 = |conv: &Conv<'_>| matches!(conv.weight, Weight::Int8 { .. });
-            let readers_int8 = int8(&block.first.conv)
+            let readers_int8 = is_int8(&block.first.conv)
                 || block
                     .downsample
                     .as_ref()
-                    .is_some_and(|layer| int8(&layer.conv));
+                    .is_some_and(|layer| is_int8(&layer.conv));
             // An on-demand level keeps its input in the frame (quantized, for int8 weights)
             // and the block's layers read those digits; a dense level is projected from the
             // digits quantized here once for every reader.
@@ -419,7 +414,7 @@ pub fn encode(
                         kernels::store_input(kernels, &projection.weight, values, taps);
                     tap_scale[0] = scale;
                     computed.fill(0);
-                    if int8(projection) {
+                    if is_int8(projection) {
                         let bytes: &[i8] = bytemuck::cast_slice(&*taps);
                         let planes = &bytes[..2 * values.len()];
                         digits = Some(DigitRows::from_planes(planes, scale, nonnegative));
@@ -429,7 +424,7 @@ pub fn encode(
                 }
             }
             let needs_digits =
-                readers_int8 || dense_map.as_ref().is_some_and(|(_, conv, _)| int8(conv));
+                readers_int8 || dense_map.as_ref().is_some_and(|(_, conv, _)| is_int8(conv));
             if digits.is_none() && needs_digits {
                 digits = Some(quantized.quantize(kernels, values));
             }

@@ -103,15 +103,8 @@ impl Amx {
         output: &mut [f32],
         accumulate: Accumulate,
     ) -> bool {
-        let Some(band) = band(shape, input) else {
-            return false;
-        };
         let parameters = (weight, weight_scales, bias);
-        assert_int8_lengths(shape, input, parameters, output.len());
-        // SAFETY: `self` exists only once AMX, AVX-512 and the permission were detected;
-        // the lengths were asserted and the band planned just above.
-        unsafe { conv(shape, input, parameters, output, accumulate, band) };
-        true
+        self.on_tiles(shape, input, parameters, output, accumulate)
     }
 
     /// [`Kernels::conv_int8_codes`] on the tiles; `false`, with nothing written, when they
@@ -127,12 +120,25 @@ impl Amx {
         output: &mut [f32],
         accumulate: Accumulate,
     ) -> bool {
+        let parameters = (weight, weight_scales, bias);
+        self.on_tiles(shape, input, parameters, output, accumulate)
+    }
+
+    /// Either convolution on the tiles, when they take it.
+    fn on_tiles<I: BandInput>(
+        &self,
+        shape: &ConvShape,
+        input: &I,
+        parameters: Parameters<'_>,
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) -> bool {
         let Some(band) = band(shape, input) else {
             return false;
         };
-        let parameters = (weight, weight_scales, bias);
-        assert_code_lengths(shape, input, parameters, output.len());
-        // SAFETY: as for `conv_int8_on_tiles`.
+        input.assert_lengths(shape, parameters, output.len());
+        // SAFETY: `self` exists only once AMX, AVX-512 and the permission were detected;
+        // the lengths were asserted and the band planned just above.
         unsafe { conv(shape, input, parameters, output, accumulate, band) };
         true
     }
@@ -270,6 +276,9 @@ trait BandInput {
 
     fn scale(&self) -> f32;
 
+    /// Panics unless the slices have the lengths the convolution's contract gives them.
+    fn assert_lengths(&self, shape: &ConvShape, parameters: Parameters<'_>, output_len: usize);
+
     /// Copies the digits of `count` input pixels from pixel `first` into `high` and `low`,
     /// `pitch` bytes a pixel, zero past [`channels`](Self::channels).
     ///
@@ -299,6 +308,10 @@ impl BandInput for DigitRows<'_> {
 
     fn scale(&self) -> f32 {
         self.scale
+    }
+
+    fn assert_lengths(&self, shape: &ConvShape, parameters: Parameters<'_>, output_len: usize) {
+        assert_int8_lengths(shape, self, parameters, output_len)
     }
 
     #[inline(always)]
@@ -331,6 +344,10 @@ impl BandInput for CodeRows<'_> {
 
     fn scale(&self) -> f32 {
         self.scale
+    }
+
+    fn assert_lengths(&self, shape: &ConvShape, parameters: Parameters<'_>, output_len: usize) {
+        assert_code_lengths(shape, self, parameters, output_len)
     }
 
     /// `high = code >> 7` (arithmetic: -128..=127 for codes in -16383..=16383) and
