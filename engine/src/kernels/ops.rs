@@ -119,7 +119,7 @@ pub fn group_norm(
         {
             *mean /= count;
             let variance = (*squares / count - *mean * *mean).max(0.0);
-            *squares = 1.0 / libm::sqrt(variance + NORM_EPSILON);
+            *squares = 1.0 / sqrt(variance + NORM_EPSILON);
         }
         let mut scale = [0.0f32; CHANNELS];
         let mut shift = [0.0f32; CHANNELS];
@@ -147,6 +147,25 @@ pub fn group_norm(
                 }
             }
         }
+    }
+}
+
+/// `x.sqrt()`, correctly rounded as IEEE 754 defines it (so the same bits whichever way).
+/// On x86-64 through the SSE2 intrinsic, which the compiler encodes for the caller's target
+/// features (VEX inside the AVX backends): `libm::sqrt` is an inline `sqrtsd` there, and
+/// that legacy encoding among AVX-512 instructions (an SSE/AVX transition each time) took
+/// half of the U-Net's GroupNorm, whose eight groups a call each take one.
+#[inline(always)]
+fn sqrt(x: f64) -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use core::arch::x86_64::{_mm_cvtsd_f64, _mm_set_sd, _mm_sqrt_pd};
+        // SAFETY: SSE2 is part of x86-64; the intrinsics touch no memory.
+        unsafe { _mm_cvtsd_f64(_mm_sqrt_pd(_mm_set_sd(x))) }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        libm::sqrt(x)
     }
 }
 
