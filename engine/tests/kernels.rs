@@ -114,8 +114,9 @@ fn assert_close(found: &[f32], expected: &[f64], magnitude: &[f64], what: &str) 
     }
 }
 
-/// Every implementation this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2,avx512` (as CI sets it, with amx where the CPU lists it) makes
-/// a missing backend a failure instead of a silent skip.
+/// Every implementation this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2,avx512` (as CI sets
+/// it, with amx where the CPU lists it) makes a missing backend a failure instead of a
+/// silent skip.
 fn backends() -> Vec<(&'static str, &'static dyn Kernels)> {
     let mut found = Vec::new();
     for (name, backend) in [
@@ -762,6 +763,67 @@ fn int8_code_convolution_is_bit_identical_on_every_backend() {
     }
 }
 
+/// The AMX tiles' short-sequence pass (one output row of at most 8 positions, both digits in
+/// one tile, 64 channels a pass) gives the scalar reference's bits: the U-Net's sequences
+/// of 8 and 4 and its downsamplings to them, one-position and unpadded outputs, several
+/// 64-channel blocks and steps, both accumulate modes. Each shape is checked to be one the
+/// pass takes, so a change to what it takes cannot leave it untested.
+#[cfg(target_arch = "x86_64")]
+#[test]
+fn amx_short_sequences_are_bit_identical_to_the_scalar_reference() {
+    // Fails here when CI requires the amx backend and it cannot run.
+    backends();
+    let Some(amx) = Amx::detect() else {
+        eprintln!("no AMX on this machine: the short-sequence pass cannot run here");
+        return;
+    };
+    let mut rng = Lcg(31);
+    let mut shapes = vec![
+        ConvShape::sequence(8, 128, 256, 5, 1, 2),
+        ConvShape::sequence(8, 256, 256, 1, 1, 0),
+        ConvShape::sequence(16, 128, 128, 3, 2, 1),
+        ConvShape::sequence(8, 256, 256, 3, 2, 1),
+        ConvShape::sequence(4, 768, 256, 5, 1, 2),
+        ConvShape::sequence(4, 384, 384, 5, 1, 2),
+        ConvShape::sequence(1, 64, 64, 5, 1, 2),
+        ConvShape::sequence(3, 192, 128, 3, 1, 0),
+        ConvShape::sequence(7, 64, 192, 5, 2, 2),
+    ];
+    while shapes.len() < 40 {
+        let kernel = [1, 3, 5][rng.below(3)];
+        let shape = ConvShape::sequence(
+            1 + rng.below(16),
+            64 * (1 + rng.below(6)),
+            64 * (1 + rng.below(3)),
+            kernel,
+            1 + rng.below(2),
+            rng.below(kernel / 2 + 1),
+        );
+        if shape.in_width + 2 * shape.padding_width >= kernel && shape.out_width() <= 8 {
+            shapes.push(shape);
+        }
+    }
+    for (case, &shape) in shapes.iter().enumerate() {
+        let code_case = CodeCase::random(&mut rng, shape);
+        let codes = padded_codes(&code_case.codes, shape.in_channels);
+        let input = CodeRows {
+            codes: &codes,
+            scale: code_case.scale,
+        };
+        assert!(
+            Amx::covers_short_sequence(&shape, &input),
+            "case {case}: the short-sequence pass does not take {shape:?}"
+        );
+        let initial = rng.vec(shape.output_len());
+        for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
+            let expected = code_case.run(&Scalar, accumulate, &initial);
+            let found = code_case.run_on_tiles(amx, accumulate, &initial);
+            let what = format!("short case {case} {shape:?} {accumulate:?}");
+            assert_same_bits(&found, &expected, &what);
+        }
+    }
+}
+
 /// The codes' sums are exact at the extremes: every code +-16383 against weights of -128
 /// and 127 (the largest products, either sign) over `MAX_DIGIT_CHANNELS` input channels
 /// and three taps, three times what i32 holds, on every backend, against the f32 rounding of
@@ -769,15 +831,22 @@ fn int8_code_convolution_is_bit_identical_on_every_backend() {
 #[test]
 fn int8_code_convolution_is_exact_at_the_extremes() {
     let channels = scdp_engine::kernels::MAX_DIGIT_CHANNELS;
-    let shape = ConvShape::sequence(4, channels, 32, 3, 1, 0);
+    // 64 output channels: the tiles' short-sequence pass; 32: their general kernel.
+    for out_channels in [32, 64] {
+        code_convolution_is_exact_at_the_extremes(channels, out_channels);
+    }
+}
+
+fn code_convolution_is_exact_at_the_extremes(channels: usize, out_channels: usize) {
+    let shape = ConvShape::sequence(4, channels, out_channels, 3, 1, 0);
     for (positive_codes, weight_value) in [(true, i8::MIN), (false, i8::MIN), (true, i8::MAX)] {
         let code = if positive_codes { 16383 } else { -16383 };
         let codes = vec![code as i16; shape.input_len()];
         let weight = vec![weight_value; shape.weight_len()];
         let mut packed = vec![0i8; shape.int8_weight_len()];
-        scdp_engine::kernels::pack_int8_quads(&weight, channels, 32, &mut packed);
-        let ones = vec![1.0f32; 32];
-        let zeros = vec![0.0f32; 32];
+        scdp_engine::kernels::pack_int8_quads(&weight, channels, out_channels, &mut packed);
+        let ones = vec![1.0f32; out_channels];
+        let zeros = vec![0.0f32; out_channels];
         let exact = code as i64 * weight_value as i64 * channels as i64 * 3;
         assert!(exact.abs() > 2 * i32::MAX as i64);
         for (name, kernels) in backends() {

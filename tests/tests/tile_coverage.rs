@@ -22,6 +22,8 @@ struct Recording {
     calls: Mutex<Vec<(ConvShape, bool)>>,
     /// The same for the U-Net's convolutions on signed codes.
     code_calls: Mutex<Vec<(ConvShape, bool)>>,
+    /// The U-Net's convolutions the tiles take as short sequences.
+    short_sequences: Mutex<Vec<ConvShape>>,
 }
 
 impl Kernels for Recording {
@@ -101,6 +103,9 @@ impl Kernels for Recording {
     ) {
         let covered = Amx::covers_codes(shape, input);
         self.code_calls.lock().unwrap().push((*shape, covered));
+        if Amx::covers_short_sequence(shape, input) {
+            self.short_sequences.lock().unwrap().push(*shape);
+        }
         Scalar.conv_int8_codes(
             shape,
             input,
@@ -125,8 +130,13 @@ impl Kernels for Recording {
 }
 
 /// The int8 convolutions one frame and one inference ask for: the trunk's dense ones
-/// (digit planes), then the U-Net's (codes).
-type Recorded = (Vec<(ConvShape, bool)>, Vec<(ConvShape, bool)>);
+/// (digit planes), the U-Net's (codes), and those of the U-Net's the tiles take as short
+/// sequences.
+type Recorded = (
+    Vec<(ConvShape, bool)>,
+    Vec<(ConvShape, bool)>,
+    Vec<ConvShape>,
+);
 
 fn int8_convolutions_of_one_inference(config: ModelConfig) -> Recorded {
     let weights = synthetic_weights_file_as(&config, 1, Quant::Int8).unwrap();
@@ -134,6 +144,7 @@ fn int8_convolutions_of_one_inference(config: ModelConfig) -> Recorded {
     let recording: &'static Recording = Box::leak(Box::new(Recording {
         calls: Mutex::new(Vec::new()),
         code_calls: Mutex::new(Vec::new()),
+        short_sequences: Mutex::new(Vec::new()),
     }));
     let mut arena = AlignedBytes::zeroed(ArenaPlan::new(&config).arena_bytes);
     let mut policy = Policy::with_kernels(&model, arena.as_mut_slice(), recording).unwrap();
@@ -157,7 +168,8 @@ fn int8_convolutions_of_one_inference(config: ModelConfig) -> Recorded {
     policy.set_camera(Camera::new(&intrinsics, &extrinsics).unwrap());
     policy.infer(Noise::Seed(3)).unwrap();
     let unet = recording.code_calls.lock().unwrap().clone();
-    (trunk, unet)
+    let short = recording.short_sequences.lock().unwrap().clone();
+    (trunk, unet, short)
 }
 
 #[test]
@@ -166,7 +178,7 @@ fn amx_tiles_take_every_dense_int8_convolution_of_the_product_models() {
         ("metaworld", ModelConfig::METAWORLD),
         ("panda", ModelConfig::PANDA),
     ] {
-        let (calls, _) = int8_convolutions_of_one_inference(config);
+        let (calls, ..) = int8_convolutions_of_one_inference(config);
         let (stem, others): (Vec<_>, Vec<_>) = calls
             .iter()
             .partition(|(shape, _)| shape.in_channels == PATCH_CHANNELS);
@@ -200,7 +212,7 @@ fn amx_tiles_take_every_int8_convolution_of_the_denoiser() {
         ("metaworld", ModelConfig::METAWORLD),
         ("panda", ModelConfig::PANDA),
     ] {
-        let (_, calls) = int8_convolutions_of_one_inference(config);
+        let (_, calls, short) = int8_convolutions_of_one_inference(config);
         // Per step: two per residual block (12 of them), five 1x1 residuals where the width
         // changes, two downsamplings and the final block's; the head and the upsamplings
         // are f32.
@@ -208,6 +220,18 @@ fn amx_tiles_take_every_int8_convolution_of_the_denoiser() {
         assert_eq!(calls.len(), steps * (2 * 12 + 5 + 2 + 1), "{name}");
         for &(shape, covered) in &calls {
             assert!(covered, "{name}: the AMX tiles do not take {shape:?}");
+        }
+        // Those at half and a quarter of the horizon (the ten blocks there, four of the
+        // residuals, both downsamplings) take the one-pass kernel: all but the five at the
+        // full horizon and the first block's residual on the sample.
+        assert_eq!(short.len(), steps * (2 * 10 + 4 + 2), "{name}");
+        for (shape, _) in &calls {
+            if shape.out_width() <= (config.horizon / 2) as usize {
+                assert!(
+                    short.contains(shape),
+                    "{name}: not a short sequence: {shape:?}"
+                );
+            }
         }
     }
 }

@@ -24,19 +24,23 @@
 //! (-128..=127) takes the signed-by-signed `tdpbssd`, `low = code & 127` the same
 //! `tdpbusd` as the trunk's, and `128 high + low` is the code, so the sums are the same
 //! exact code sums. Its sequences are 4 to 16 positions, one or two tiles: the vector
-//! kernels spent most of their time widening each weight for every 4 positions.
+//! kernels spent most of their time widening each weight for every 4 positions. Those of at
+//! most 8 output positions, which hold nearly all its weights, go to [`short_sequence`]:
+//! both digits in one tile, so a pass covers a whole 64-channel block of the layout.
 //!
 //! Linux hands out the tile registers on request only (`arch_prctl(ARCH_REQ_XCOMP_PERM)`);
 //! without an OS (`target_os = "none"`) the firmware that set XCR0 has enabled them.
 
 use core::arch::asm;
 use core::arch::x86_64::{
-    _mm256_store_si256, _mm512_add_epi32, _mm512_add_ps, _mm512_and_si512, _mm512_cvtepi16_epi8,
-    _mm512_cvtepi32_ps, _mm512_load_si512, _mm512_loadu_ps, _mm512_maskz_loadu_epi8,
-    _mm512_maskz_loadu_epi16, _mm512_mul_ps, _mm512_set1_epi16, _mm512_set1_ps, _mm512_slli_epi32,
-    _mm512_srai_epi16, _mm512_store_si512, _mm512_storeu_ps,
+    __m512i, _mm256_store_si256, _mm512_add_epi32, _mm512_add_ps, _mm512_and_si512,
+    _mm512_cvtepi16_epi8, _mm512_cvtepi32_ps, _mm512_load_si512, _mm512_loadu_ps,
+    _mm512_maskz_loadu_epi8, _mm512_maskz_loadu_epi16, _mm512_mul_ps, _mm512_set1_epi16,
+    _mm512_set1_ps, _mm512_slli_epi32, _mm512_srai_epi16, _mm512_store_si512, _mm512_storeu_ps,
 };
 use core::mem::MaybeUninit;
+
+mod short_sequence;
 
 use super::avx512::Avx512;
 use super::int8::{exact_digits_zmm, round_zmm};
@@ -90,6 +94,13 @@ impl Amx {
         band(shape, input).is_some()
     }
 
+    /// Whether [`covers_codes`](Self::covers_codes) takes `shape` as a short sequence: one
+    /// output row of at most 8 positions, whole 64-channel steps in and blocks out, both
+    /// digits in one tile and 64 channels a pass (the U-Net's sequences of 8 and 4).
+    pub fn covers_short_sequence(shape: &ConvShape, input: &CodeRows<'_>) -> bool {
+        band(shape, input).is_some() && short_sequence::applies(shape, CodeRows::channels(shape))
+    }
+
     /// [`Kernels::conv_int8`] on the tiles; `false`, with nothing written, when they do not
     /// apply ([`Amx::covers`]). Tests call it to know the tiles ran.
     #[allow(clippy::too_many_arguments)]
@@ -137,6 +148,11 @@ impl Amx {
             return false;
         };
         input.assert_lengths(shape, parameters, output.len());
+        if short_sequence::applies(shape, I::channels(shape)) {
+            // SAFETY: as below; `applies` was checked just above.
+            unsafe { short_sequence::conv(shape, input, parameters, output, accumulate) };
+            return true;
+        }
         // SAFETY: `self` exists only once AMX, AVX-512 and the permission were detected;
         // the lengths were asserted and the band planned just above.
         unsafe { conv(shape, input, parameters, output, accumulate, band) };
@@ -927,8 +943,6 @@ impl Epilogue<'_> {
     #[inline(always)]
     unsafe fn write(&self, sums: &BlockSums, block: &Pending, output: &mut [f32]) {
         let channel = block.channel;
-        let weight_scales = &self.parameters.0[channel..][..BLOCK_CHANNELS];
-        let bias = &self.parameters.1[channel..][..BLOCK_CHANNELS];
         let band = &block.band;
         let (mut y, mut x) = (block.first / band.grid, block.first % band.grid);
         for row in 0..BLOCK_PIXELS {
@@ -947,31 +961,43 @@ impl Epilogue<'_> {
             }
             let out = &mut output[pixel * self.out_channels + channel..][..BLOCK_CHANNELS];
             let at = row * ROW_BYTES;
-            for vector in 0..2 {
-                let channels = vector * SUM_COLUMNS;
-                // SAFETY: AVX-512F; each sum buffer row is 64 aligned bytes; 16 floats from
-                // `channels` in each slice.
+            for (vector, out) in out.chunks_exact_mut(SUM_COLUMNS).enumerate() {
+                // SAFETY: AVX-512F; each sum buffer row is 64 aligned bytes.
                 unsafe {
                     let high = _mm512_load_si512(sums[vector].as_ptr().add(at).cast());
                     let low = _mm512_load_si512(sums[2 + vector].as_ptr().add(at).cast());
-                    let rounded = if self.i32_exact {
-                        // The shift by 7 is the multiplication by the digit base.
-                        const { assert!(DIGIT_BASE == (1 << 7) as f32) };
-                        _mm512_cvtepi32_ps(_mm512_add_epi32(_mm512_slli_epi32::<7>(high), low))
-                    } else {
-                        round_zmm(exact_digits_zmm(high, low))
-                    };
-                    let total = _mm512_mul_ps(rounded, _mm512_set1_ps(self.scale));
-                    let weight_scale = _mm512_loadu_ps(weight_scales[channels..].as_ptr());
-                    let scaled = _mm512_mul_ps(total, weight_scale);
-                    let bias = _mm512_loadu_ps(bias[channels..].as_ptr());
-                    let mut value = _mm512_add_ps(scaled, bias);
-                    if self.accumulate == Accumulate::Add {
-                        value = _mm512_add_ps(_mm512_loadu_ps(out[channels..].as_ptr()), value);
-                    }
-                    _mm512_storeu_ps(out[channels..].as_mut_ptr(), value);
+                    self.write_group((high, low), channel + vector * SUM_COLUMNS, out);
                 }
             }
+        }
+    }
+
+    /// `out (+)= round(128 high + low) * scale * weight_scales + bias` for the 16 channels
+    /// from `channel` of one output pixel: `high` and `low` its digits' exact sums.
+    ///
+    /// # Safety
+    /// AVX-512F; the channels are inside the parameters; `out` holds 16 values.
+    #[inline(always)]
+    unsafe fn write_group(&self, (high, low): (__m512i, __m512i), channel: usize, out: &mut [f32]) {
+        let out = &mut out[..SUM_COLUMNS];
+        let weight_scales = &self.parameters.0[channel..][..SUM_COLUMNS];
+        let bias = &self.parameters.1[channel..][..SUM_COLUMNS];
+        // SAFETY: AVX-512F; 16 floats in each slice.
+        unsafe {
+            let rounded = if self.i32_exact {
+                // The shift by 7 is the multiplication by the digit base.
+                const { assert!(DIGIT_BASE == (1 << 7) as f32) };
+                _mm512_cvtepi32_ps(_mm512_add_epi32(_mm512_slli_epi32::<7>(high), low))
+            } else {
+                round_zmm(exact_digits_zmm(high, low))
+            };
+            let total = _mm512_mul_ps(rounded, _mm512_set1_ps(self.scale));
+            let scaled = _mm512_mul_ps(total, _mm512_loadu_ps(weight_scales.as_ptr()));
+            let mut value = _mm512_add_ps(scaled, _mm512_loadu_ps(bias.as_ptr()));
+            if self.accumulate == Accumulate::Add {
+                value = _mm512_add_ps(_mm512_loadu_ps(out.as_ptr()), value);
+            }
+            _mm512_storeu_ps(out.as_mut_ptr(), value);
         }
     }
 }
