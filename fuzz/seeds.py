@@ -3,7 +3,7 @@
 
 Run from anywhere: `python3 fuzz/seeds.py`. The inputs follow the layouts documented in
 fuzz/src/harness.rs; the weights file layout is docs/FORMAT.md. Offsets into the MICRO
-weights files (f32: 860800 bytes, 195 tensors; int8: 254144 bytes, 261 tensors) are those
+weights files (f32: 861824 bytes, 195 tensors; int8: 254144 bytes, 262 tensors) are those
 `weights-tool inspect` prints for them.
 """
 
@@ -81,7 +81,7 @@ def load_bytes_seeds():
 
 # --- load_mutated: flags, [u32 length], then (u32 offset, u8 n, n % 8 + 1 bytes) edits ----
 
-MICRO_LEN = 860800
+MICRO_LEN = 861824
 
 
 def edit(offset: int, payload: bytes) -> bytes:
@@ -109,7 +109,7 @@ def load_mutated_seeds():
         yield f"resize-{length}", bytes([1 | RUN]) + u32(length)
     yield "resize-stale-length", bytes([1 | 2]) + u32(MICRO_LEN - 64)
     yield "stale-checksum", bytes([4]) + edit(100_000, b"\x01")
-    yield "version-5", bytes([0]) + edit(8, u32(5))
+    yield "version-6", bytes([0]) + edit(8, u32(6))
     yield "header-bytes", bytes([0]) + edit(12, u32(65))
     yield "table-offset", bytes([0]) + edit(40, u32(64))
     yield "count-minus-one", bytes([0]) + edit(44, u32(194))
@@ -131,12 +131,12 @@ def load_mutated_seeds():
     yield "entry3-len", bytes([0]) + edit(table + 3 * 96 + 88, b"\x00")
     yield "entry-dtype-i8", bytes([0]) + edit(table + 100 * 96 + 56, u32(1))
     # Tensor values the denoiser cannot survive, and ones it can.
-    yield "ddim-nan", bytes([RUN]) + edit(860736, f32(float("nan")))
-    yield "ddim-inf", bytes([RUN]) + edit(860736 + 4, f32(float("inf")))
-    yield "final-bias-huge", bytes([RUN]) + edit(860416, f32(3e38) * 2)
-    yield "action-scale-zero", bytes([RUN]) + edit(860480, f32(0.0) * 2)
-    yield "state-scale-huge", bytes([RUN]) + edit(860608, f32(3e38) * 2)
-    yield "state-offset-nan", bytes([RUN]) + edit(860672, f32(float("nan")))
+    yield "ddim-nan", bytes([RUN]) + edit(861760, f32(float("nan")))
+    yield "ddim-inf", bytes([RUN]) + edit(861760 + 4, f32(float("inf")))
+    yield "final-bias-huge", bytes([RUN]) + edit(861440, f32(3e38) * 2)
+    yield "action-scale-zero", bytes([RUN]) + edit(861504, f32(0.0) * 2)
+    yield "state-scale-huge", bytes([RUN]) + edit(861632, f32(3e38) * 2)
+    yield "state-offset-nan", bytes([RUN]) + edit(861696, f32(float("nan")))
     yield "stem-weight-huge", bytes([RUN]) + b"".join(
         edit(19072 + 4 * i, f32(3e38) * 2) for i in range(0, 64, 2))
     # The int8 file: int8 kernels with their per-channel scales.
@@ -144,12 +144,12 @@ def load_mutated_seeds():
     for length in (64, 320, INT8_LEN - 64):
         yield f"int8-resize-{length}", bytes([INT8 | 1 | RUN]) + u32(length)
     yield "int8-image-size", bytes([INT8 | RUN]) + edit(64, u32(19) + u32(37))
-    layer1_scale = 30784
+    layer1_scale = 30848
     for name, value in (("zero", 0.0), ("negative", -1.0), ("nan", float("nan")),
                         ("inf", float("inf")), ("huge", 3e38), ("tiny", 1e-45)):
         yield f"int8-scale-{name}", bytes([INT8 | RUN]) + edit(layer1_scale, f32(value))
-    yield "int8-weight-minus-128", bytes([INT8 | RUN]) + edit(30208, b"\x80" * 8)
-    yield "int8-film-scale-huge", bytes([INT8 | RUN]) + edit(221632, f32(3e38) * 2)
+    yield "int8-weight-minus-128", bytes([INT8 | RUN]) + edit(30272, b"\x80" * 8)
+    yield "int8-film-scale-huge", bytes([INT8 | RUN]) + edit(221696, f32(3e38) * 2)
     yield "int8-dtype-f32", bytes([INT8]) + edit(320 + 10 * 96 + 56, u32(0))
 
 

@@ -9,10 +9,13 @@
 //! activations, pooling and additions are not MACs and are left out (they are element-wise,
 //! a few operations per value, far below the convolutions).
 //!
-//! What the engine computes differs from the PyTorch module in one place: the FiLM layers'
+//! What the engine computes differs from the PyTorch module in two places. The FiLM layers'
 //! time-embedding half (and the step encoder before it) depends only on the step, so the
 //! weights tool precomputes it per step (`film.table`); per step only the `[2 out, g]` part
-//! runs. [`Stage::Film`] counts that part; [`torch_only_per_step`] the rest.
+//! runs. [`Stage::Film`] counts that part; [`torch_only_per_step`] the rest. And the
+//! transposed convolutions run as the tool lowers them, ordinary convolutions of 3 taps and
+//! twice the output channels (a quarter of their weights zero): counted as such, their
+//! excess over PyTorch's count is [`engine_only_per_step`].
 
 use scdp_engine::ModelConfig;
 use scdp_engine::config::{PYRAMID_LEVELS, UNET_LEVELS};
@@ -242,9 +245,10 @@ pub fn step_layers(config: &ModelConfig) -> Vec<Layer> {
         let name = |block: usize| format!("up.{index}.{block}");
         residual_block(&mut layers, stage, name(0), length, 2 * below, channels);
         residual_block(&mut layers, stage, name(1), length, channels, channels);
-        // ConvTranspose1d(4, stride 2): counted over its input positions.
+        // ConvTranspose1d(4, stride 2), lowered: 3 taps over its input positions, to twice
+        // the channels.
         let name = format!("up.{index}.upsample");
-        layers.push(conv1d(stage, name, length, 4, channels, channels));
+        layers.push(conv1d(stage, name, length, 3, channels, 2 * channels));
     }
     let action_dim = config.action_dim as usize;
     layers.push(conv1d(
@@ -290,6 +294,19 @@ pub fn torch_only_per_step(config: &ModelConfig) -> u64 {
         .map(|layer| layer.macs / config.global_cond_dim() as u64)
         .sum();
     2 * embed * 4 * embed + film_rows * embed
+}
+
+/// MACs per step that the engine runs and PyTorch's module does not: the lowered transposed
+/// convolutions' `length x 3 x C x 2C` against PyTorch's `length x 4 x C x C`.
+pub fn engine_only_per_step(config: &ModelConfig) -> u64 {
+    (0..UNET_LEVELS - 1)
+        .map(|index| {
+            let level = UNET_LEVELS - 2 - index;
+            let length = (config.horizon >> (level + 1)) as u64;
+            let channels = config.down_dims[level] as u64;
+            length * channels * channels * (3 * 2 - 4)
+        })
+        .sum()
 }
 
 /// One row of the per-stage table.
@@ -408,7 +425,7 @@ mod tests {
         let step = step_layers(config);
         let unet = stage_macs(&step, |s| s != Stage::Conditioning);
         assert_eq!(
-            2 * (unet + torch_only_per_step(config)),
+            2 * (unet + torch_only_per_step(config) - engine_only_per_step(config)),
             torch.unet_step,
             "U-Net step"
         );

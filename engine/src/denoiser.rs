@@ -4,7 +4,7 @@
 use crate::config::{ModelConfig, UNET_LEVELS};
 use crate::kernels::ops::{self, Activation};
 use crate::kernels::{self, Accumulate, Activations, ConvShape, Kernels, QuantizeScratch};
-use crate::weights::{Conv, ConvF32, DenoiserWeights, Norm, ResidualBlock};
+use crate::weights::{Conv, DenoiserWeights, Norm, ResidualBlock};
 
 /// Diffusion Policy builds the head's Conv1dBlock without passing `n_groups`, so it always
 /// has its default of 8 groups.
@@ -150,23 +150,19 @@ impl Context<'_> {
     }
 
     /// ConvTranspose1d(4, stride 2, padding 1): `[length, channels]` -> `[2 length, channels]`.
+    /// The tool lowered it to a convolution of 3 taps (padding 1) to `2 channels` whose
+    /// position `j` holds outputs `2 j` and `2 j + 1` side by side: `[length, 2 channels]`
+    /// is `[2 length, channels]`.
     fn upsample(
-        &self,
-        conv: &ConvF32<'_>,
+        &mut self,
+        conv: &Conv<'_>,
         length: usize,
         channels: usize,
         input: &[f32],
         output: &mut [f32],
     ) {
-        self.kernels.upsample_conv(
-            length,
-            channels,
-            channels,
-            &input[..length * channels],
-            conv.weight,
-            conv.bias,
-            &mut output[..2 * length * channels],
-        );
+        let shape = ConvShape::sequence(length, channels, 2 * channels, 3, 1, 1);
+        self.convolve(&shape, conv, input, output, Accumulate::Overwrite);
     }
 }
 

@@ -11,8 +11,10 @@ use crate::error::Error as LoadError;
 pub const MAGIC: [u8; 8] = *b"SCDPWTS\0";
 /// The format version this engine reads and the tool writes. Version 2: int8 kernels of
 /// 2-D convolutions are stored in input-channel quads; version 3: those of 1-D convolutions
-/// too; version 4: the quads in blocks of 64 output channels (docs/FORMAT.md).
-pub const VERSION: u32 = 4;
+/// too; version 4: the quads in blocks of 64 output channels; version 5: the U-Net's
+/// transposed convolutions lowered to ordinary convolutions, stored like them (int8 where
+/// the tool chooses; docs/FORMAT.md).
+pub const VERSION: u32 = 5;
 /// Every section and tensor starts at a multiple of this, so SIMD loads can be aligned.
 pub const ALIGN: usize = 64;
 pub const HEADER_BYTES: usize = 64;

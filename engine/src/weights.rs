@@ -7,7 +7,8 @@
 //!
 //! Layouts are the engine's, not PyTorch's (the tool packs them offline):
 //! - 2-D convolutions: `[kh, kw, in, out]`, feature maps `[H, W, C]`;
-//! - 1-D convolutions and transposed convolutions: `[k, in, out]`, sequences `[T, C]`;
+//! - 1-D convolutions: `[k, in, out]`, sequences `[T, C]`; the transposed convolutions
+//!   lowered to ordinary ones of 3 taps and twice the output channels;
 //! - FiLM: the global-condition part of the linear layer `[2 out, global_cond_dim]`, and the
 //!   time-embedding part with the bias folded in, precomputed per inference step `[steps, 2 out]`;
 //! - BatchNorm does not appear: it is folded into the convolution before it.
@@ -208,14 +209,6 @@ pub struct ResidualBlock<'w> {
     pub residual: Option<Conv<'w>>,
 }
 
-/// A layer the tool always stores in f32 (the transposed convolutions: 2% of the U-Net's
-/// weights, and their kernel has no int8 form).
-#[derive(Clone, Copy, Debug, Default)]
-pub struct ConvF32<'w> {
-    pub weight: &'w [f32],
-    pub bias: &'w [f32],
-}
-
 /// ConditionalUnet1D.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct DenoiserWeights<'w> {
@@ -223,7 +216,9 @@ pub struct DenoiserWeights<'w> {
     pub downsample: [Conv<'w>; UNET_LEVELS - 1],
     pub mid: [ResidualBlock<'w>; 2],
     pub up: [[ResidualBlock<'w>; 2]; UNET_LEVELS - 1],
-    pub upsample: [ConvF32<'w>; UNET_LEVELS - 1],
+    /// The transposed convolutions, as the tool lowers them (docs/FORMAT.md): 3 taps,
+    /// `channels` -> `2 channels`, each output position the two outputs it upsamples to.
+    pub upsample: [Conv<'w>; UNET_LEVELS - 1],
     pub final_conv: Conv<'w>,
     pub final_norm: Norm<'w>,
     pub final_projection: Conv<'w>,
@@ -458,14 +453,11 @@ impl<'w> ModelWeights<'w> {
                 dims[level],
             )?;
             let channels = dims[level];
-            denoiser.upsample[index] = ConvF32 {
-                weight: source.f32_tensor(
-                    format_args!("unet.up.{index}.upsample.weight"),
-                    &[4, channels, channels],
-                )?,
-                bias: source
-                    .f32_tensor(format_args!("unet.up.{index}.upsample.bias"), &[channels])?,
-            };
+            denoiser.upsample[index] = conv(
+                source,
+                format_args!("unet.up.{index}.upsample"),
+                &[3, channels, 2 * channels],
+            )?;
         }
         let kernel = config.kernel_size as usize;
         denoiser.final_conv = conv(

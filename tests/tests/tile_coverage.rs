@@ -43,27 +43,6 @@ impl Kernels for Recording {
         Scalar.conv(shape, input, weight, bias, output, accumulate)
     }
 
-    fn upsample_conv(
-        &self,
-        length: usize,
-        in_channels: usize,
-        out_channels: usize,
-        input: &[f32],
-        weight: &[f32],
-        bias: &[f32],
-        output: &mut [f32],
-    ) {
-        Scalar.upsample_conv(
-            length,
-            in_channels,
-            out_channels,
-            input,
-            weight,
-            bias,
-            output,
-        )
-    }
-
     fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
         Scalar.matvec(weight, input, base, output)
     }
@@ -214,17 +193,17 @@ fn amx_tiles_take_every_int8_convolution_of_the_denoiser() {
     ] {
         let (_, calls, short) = int8_convolutions_of_one_inference(config);
         // Per step: two per residual block (12 of them), five 1x1 residuals where the width
-        // changes, two downsamplings and the final block's; the head and the upsamplings
-        // are f32.
+        // changes, two downsamplings, the first (lowered) upsampling and the final block's;
+        // the head and the second upsampling are f32.
         let steps = config.num_inference_steps as usize;
-        assert_eq!(calls.len(), steps * (2 * 12 + 5 + 2 + 1), "{name}");
+        assert_eq!(calls.len(), steps * (2 * 12 + 5 + 2 + 1 + 1), "{name}");
         for &(shape, covered) in &calls {
             assert!(covered, "{name}: the AMX tiles do not take {shape:?}");
         }
         // Those at half and a quarter of the horizon (the ten blocks there, four of the
-        // residuals, both downsamplings) take the one-pass kernel: all but the five at the
-        // full horizon and the first block's residual on the sample.
-        assert_eq!(short.len(), steps * (2 * 10 + 4 + 2), "{name}");
+        // residuals, both downsamplings, the upsampling) take the one-pass kernel: all but
+        // the five at the full horizon and the first block's residual on the sample.
+        assert_eq!(short.len(), steps * (2 * 10 + 4 + 2 + 1), "{name}");
         for (shape, _) in &calls {
             if shape.out_width() <= (config.horizon / 2) as usize {
                 assert!(

@@ -365,20 +365,6 @@ pub trait Kernels: Sync {
         );
     }
 
-    /// PyTorch's ConvTranspose1d(kernel 4, stride 2, padding 1) over `[length, in]`,
-    /// weights packed `[4, in, out]`, giving `[2 length, out]`.
-    #[allow(clippy::too_many_arguments)]
-    fn upsample_conv(
-        &self,
-        length: usize,
-        in_channels: usize,
-        out_channels: usize,
-        input: &[f32],
-        weight: &[f32],
-        bias: &[f32],
-        output: &mut [f32],
-    );
-
     /// `output[r] = base[r] + sum_c weight[r, c] input[c]` for a row-major `[rows, cols]`.
     fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]);
 

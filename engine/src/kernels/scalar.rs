@@ -450,44 +450,6 @@ impl Kernels for Scalar {
         }
     }
 
-    fn upsample_conv(
-        &self,
-        length: usize,
-        in_channels: usize,
-        out_channels: usize,
-        input: &[f32],
-        weight: &[f32],
-        bias: &[f32],
-        output: &mut [f32],
-    ) {
-        assert_eq!(input.len(), length * in_channels);
-        assert_eq!(weight.len(), 4 * in_channels * out_channels);
-        assert_eq!(bias.len(), out_channels);
-        assert_eq!(output.len(), 2 * length * out_channels);
-        for out in output.chunks_exact_mut(out_channels) {
-            out.copy_from_slice(bias);
-        }
-        // Input step t feeds output steps 2t + j - 1 through tap j (stride 2, padding 1).
-        for (step, values) in input.chunks_exact(in_channels).enumerate() {
-            for tap in 0..4 {
-                let Some(target) = (2 * step + tap).checked_sub(1) else {
-                    continue;
-                };
-                if target >= 2 * length {
-                    continue;
-                }
-                let out = &mut output[target * out_channels..][..out_channels];
-                let taps =
-                    &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
-                for (&value, row) in values.iter().zip(taps.chunks_exact(out_channels)) {
-                    for (o, &w) in out.iter_mut().zip(row) {
-                        *o += value * w;
-                    }
-                }
-            }
-        }
-    }
-
     fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
         assert_eq!(weight.len(), output.len() * input.len());
         assert_eq!(base.len(), output.len());

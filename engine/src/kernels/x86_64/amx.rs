@@ -1048,27 +1048,6 @@ impl Kernels for Amx {
             .conv_int8_pixel(shape, input, weight, weight_scales, bias, pixel, output)
     }
 
-    fn upsample_conv(
-        &self,
-        length: usize,
-        in_channels: usize,
-        out_channels: usize,
-        input: &[f32],
-        weight: &[f32],
-        bias: &[f32],
-        output: &mut [f32],
-    ) {
-        self.avx512.upsample_conv(
-            length,
-            in_channels,
-            out_channels,
-            input,
-            weight,
-            bias,
-            output,
-        )
-    }
-
     fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
         self.avx512.matvec(weight, input, base, output)
     }

@@ -8,21 +8,6 @@
 /// `unsafe` call below relies on.
 macro_rules! shared_kernels {
     ($backend:ident) => {
-        fn upsample_conv(
-            &self,
-            length: usize,
-            in_channels: usize,
-            out_channels: usize,
-            input: &[f32],
-            weight: &[f32],
-            bias: &[f32],
-            output: &mut [f32],
-        ) {
-            let channels = (length, in_channels, out_channels);
-            // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { sequence::$backend::upsample_conv(channels, input, weight, bias, output) }
-        }
-
         fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
             // SAFETY: `self` exists only on a CPU with the backend's features.
             unsafe { sequence::$backend::matvec(weight, input, base, output) }

@@ -1,8 +1,8 @@
 //! Kernels for the conditional U-Net's f32 weights, over a vector width ([`Lanes`]: YMM for
 //! AVX2, ZMM for AVX-512; one generic body, instantiated in the thin `#[target_feature]`
-//! wrappers at the end): 1-D convolutions over short sequences (`[T, C]`, T = 16, 8 or 4),
-//! its transposed upsampling convolution, and the FiLM matrix-vector products of f32 weights
-//! (int8 ones multiply codes, in `int8`). Their weights are read at every denoising step, so
+//! wrappers at the end): 1-D convolutions over short sequences (`[T, C]`, T = 16, 8 or 4)
+//! and the FiLM matrix-vector products of f32 weights (int8 ones multiply codes, in
+//! `int8`). Their weights are read at every denoising step, so
 //! these kernels read each weight once per call where they can:
 //! - on sequences of up to 16 positions (all of the product models'), the weights are
 //!   streamed in memory order, a block of eight rows applied to every position while the
@@ -19,12 +19,10 @@ use crate::kernels::{Accumulate, ConvShape};
 /// leaving registers for the two weight vectors and the broadcast input (AVX2 has 16).
 const POSITIONS: usize = 4;
 
-/// A 1-D convolution seen from its outputs. Output position `t` (of `positions`) is stored in
-/// output row `out_first + t * out_step`; its tap `i` (of `taps`) multiplies weight block
-/// `first_tap + i * tap_step` (`[in, out]`) with input row `t * stride + first_offset +
-/// i * offset_step`, and is skipped when that row is outside `0 .. in_length` (zero padding).
-/// A convolution has `first_tap = 0, tap_step = 1, first_offset = -padding, offset_step = 1`;
-/// the even and odd outputs of the stride-2 transposed convolution are two such sequences.
+/// A 1-D convolution seen from its outputs: output position `t` (of `positions`), tap `i`
+/// (of `taps`) multiplies weight block `i` (`[in, out]`) with input row `t * stride +
+/// first_offset + i`, and is skipped when that row is outside `0 .. in_length` (zero
+/// padding: `first_offset = -padding`).
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Sequence {
     pub in_length: usize,
@@ -33,12 +31,7 @@ pub(crate) struct Sequence {
     pub positions: usize,
     pub stride: usize,
     pub taps: usize,
-    pub first_tap: usize,
-    pub tap_step: usize,
     pub first_offset: isize,
-    pub offset_step: isize,
-    pub out_first: usize,
-    pub out_step: usize,
 }
 
 impl Sequence {
@@ -72,45 +65,13 @@ impl Sequence {
             positions,
             stride,
             taps,
-            first_tap: 0,
-            tap_step: 1,
             first_offset: -(padding as isize),
-            offset_step: 1,
-            out_first: 0,
-            out_step: 1,
         }
     }
 
-    /// Outputs `2 m + parity` of PyTorch's ConvTranspose1d(kernel 4, stride 2, padding 1):
-    /// output `t` takes input `s` through tap `t + 1 - 2 s`, so even outputs use taps 1 and 3
-    /// on inputs `m` and `m - 1`, odd outputs taps 0 and 2 on inputs `m + 1` and `m`.
-    pub fn upsample_half(
-        length: usize,
-        in_channels: usize,
-        out_channels: usize,
-        parity: usize,
-    ) -> Self {
-        Sequence {
-            in_length: length,
-            in_channels,
-            out_channels,
-            positions: length,
-            stride: 1,
-            taps: 2,
-            first_tap: 1 - parity,
-            tap_step: 2,
-            first_offset: parity as isize,
-            offset_step: -1,
-            out_first: parity,
-            out_step: 2,
-        }
-    }
-
+    /// Kernel tap `index` and the offset of the input row it reads from `t * stride`.
     fn tap(&self, index: usize) -> (usize, isize) {
-        (
-            self.first_tap + index * self.tap_step,
-            self.first_offset + index as isize * self.offset_step,
-        )
+        (index, self.first_offset + index as isize)
     }
 
     /// The positions `first .. first + count` whose input row for a tap with this `offset`
@@ -135,25 +96,9 @@ impl Sequence {
     fn assert_lengths(&self, input: usize, weight: usize, output: usize, bias: usize) {
         let (in_channels, out_channels) = (self.in_channels, self.out_channels);
         assert!(input >= self.in_length * in_channels);
-        assert!(weight >= self.weight_blocks() * in_channels * out_channels);
-        assert!(output >= self.output_rows() * out_channels);
+        assert!(weight >= self.taps * in_channels * out_channels);
+        assert!(output >= self.positions * out_channels);
         assert_eq!(bias, out_channels);
-    }
-
-    fn weight_blocks(&self) -> usize {
-        if self.taps == 0 {
-            0
-        } else {
-            self.first_tap + (self.taps - 1) * self.tap_step + 1
-        }
-    }
-
-    fn output_rows(&self) -> usize {
-        if self.positions == 0 {
-            0
-        } else {
-            self.out_first + (self.positions - 1) * self.out_step + 1
-        }
     }
 }
 
@@ -181,8 +126,7 @@ unsafe fn convolve<L: Lanes>(
     let vector_channels = out_channels - out_channels % L::WIDTH;
     // The output holds the running sums: bias first, then one partial sum per chunk.
     for position in 0..sequence.positions {
-        let row = sequence.out_first + position * sequence.out_step;
-        let out = &mut output[row * out_channels..][..vector_channels];
+        let out = &mut output[position * out_channels..][..vector_channels];
         match accumulate {
             Accumulate::Overwrite => out.copy_from_slice(&bias[..vector_channels]),
             Accumulate::Add => out.iter_mut().zip(bias).for_each(|(o, b)| *o += b),
@@ -293,8 +237,7 @@ unsafe fn convolve_streaming<L: Lanes>(
     sequence.assert_lengths(input.len(), weight.len(), output.len(), bias.len());
     assert!(sequence.positions <= STREAMING_POSITIONS);
     for position in 0..sequence.positions {
-        let row = sequence.out_first + position * sequence.out_step;
-        let out = &mut output[row * out_channels..][..out_channels];
+        let out = &mut output[position * out_channels..][..out_channels];
         match accumulate {
             Accumulate::Overwrite => out.copy_from_slice(bias),
             Accumulate::Add => out.iter_mut().zip(bias).for_each(|(o, b)| *o += b),
@@ -309,11 +252,8 @@ unsafe fn convolve_streaming<L: Lanes>(
         let block = &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
         let input_row = (start * sequence.stride) as isize + offset;
         let tap_input = &input[input_row as usize * in_channels..];
-        let out = &mut output[(sequence.out_first + start * sequence.out_step) * out_channels..];
-        let strides = (
-            sequence.stride * in_channels,
-            sequence.out_step * out_channels,
-        );
+        let out = &mut output[start * out_channels..];
+        let strides = (sequence.stride * in_channels, out_channels);
         macro_rules! positions {
             ($($count:literal => ($first:literal, $second:literal)),*) => {
                 match end - start {
@@ -574,8 +514,8 @@ unsafe fn add_sums<L: Lanes, const VECS: usize>(
 ) {
     let count = (sequence.positions - first).min(POSITIONS);
     for (position, sum) in sums.iter().enumerate().take(count) {
-        let row = sequence.out_first + (first + position) * sequence.out_step;
-        let out = &mut output[row * sequence.out_channels + channel..][..L::WIDTH * VECS];
+        let out =
+            &mut output[(first + position) * sequence.out_channels + channel..][..L::WIDTH * VECS];
         for (vec, &value) in sum.iter().enumerate() {
             // SAFETY: `out` holds `VECS WIDTH` floats; the caller runs on `L`'s CPU.
             unsafe {
@@ -596,7 +536,6 @@ fn narrow_channels(
 ) {
     let (in_channels, out_channels) = (sequence.in_channels, sequence.out_channels);
     for position in 0..sequence.positions {
-        let row = sequence.out_first + position * sequence.out_step;
         for o in channel..out_channels {
             let mut sum = 0.0;
             for index in 0..sequence.taps {
@@ -614,7 +553,7 @@ fn narrow_channels(
                 }
             }
             let value = sum + bias[o];
-            let out = &mut output[row * out_channels + o];
+            let out = &mut output[position * out_channels + o];
             match accumulate {
                 Accumulate::Overwrite => *out = value,
                 Accumulate::Add => *out += value,
@@ -742,28 +681,6 @@ macro_rules! backend {
                 // SAFETY: the caller vouches for the CPU.
                 unsafe { convolve_f32(&sequence, input, weight, bias, output, accumulate) };
                 Some(())
-            }
-
-            /// `Kernels::upsample_conv`.
-            ///
-            /// # Safety
-            /// The CPU supports the backend's features.
-            pub(crate) unsafe fn upsample_conv(
-                (length, in_channels, out_channels): (usize, usize, usize),
-                input: &[f32],
-                weight: &[f32],
-                bias: &[f32],
-                output: &mut [f32],
-            ) {
-                assert_eq!(input.len(), length * in_channels);
-                assert_eq!(weight.len(), 4 * in_channels * out_channels);
-                assert_eq!(output.len(), 2 * length * out_channels);
-                for parity in 0..2 {
-                    let half = Sequence::upsample_half(length, in_channels, out_channels, parity);
-                    let overwrite = Accumulate::Overwrite;
-                    // SAFETY: the caller vouches for the CPU.
-                    unsafe { convolve_f32(&half, input, weight, bias, output, overwrite) };
-                }
             }
         }
     };

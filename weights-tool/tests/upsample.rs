@@ -1,0 +1,84 @@
+//! The U-Net's transposed convolutions, as the tool lowers them (3 taps, twice the output
+//! channels), run through the engine's convolution contract, give PyTorch's
+//! ConvTranspose1d(kernel 4, stride 2, padding 1), written out from its definition.
+
+use scdp_engine::kernels::scalar::Scalar;
+use scdp_engine::kernels::{Accumulate, ConvShape, Kernels};
+use weights_tool::lowering::lower_upsample;
+
+/// A small deterministic generator of values in [-1, 1).
+struct Lcg(u64);
+
+impl Lcg {
+    fn next(&mut self) -> f32 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((self.0 >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+    }
+
+    fn vec(&mut self, len: usize) -> Vec<f32> {
+        (0..len).map(|_| self.next()).collect()
+    }
+}
+
+#[test]
+fn lowered_upsample_is_pytorch_conv_transpose() {
+    let mut rng = Lcg(5);
+    for (length, channels) in [(1, 1), (1, 3), (2, 5), (4, 16), (7, 9), (8, 24)] {
+        // PyTorch's layout: input [channels, length], weight [in, out, 4].
+        let input_ct = rng.vec(channels * length);
+        let weight = rng.vec(channels * channels * 4);
+        let bias = rng.vec(channels);
+        // y[o, t] = b[o] + sum over s, k with t = 2 s + k - 1 of x[i, s] w[i, o, k].
+        let mut expected = vec![0.0f64; 2 * length * channels];
+        let mut magnitude = vec![0.0f64; expected.len()];
+        for t in 0..2 * length {
+            for o in 0..channels {
+                let (mut sum, mut abs) = (bias[o] as f64, bias[o].abs() as f64);
+                for s in 0..length {
+                    for k in 0..4 {
+                        if 2 * s + k != t + 1 {
+                            continue;
+                        }
+                        for i in 0..channels {
+                            let term = input_ct[i * length + s] as f64
+                                * weight[(i * channels + o) * 4 + k] as f64;
+                            sum += term;
+                            abs += term.abs();
+                        }
+                    }
+                }
+                expected[t * channels + o] = sum;
+                magnitude[t * channels + o] = abs;
+            }
+        }
+
+        let lowered = lower_upsample(&weight, channels);
+        let shape = ConvShape::sequence(length, channels, 2 * channels, 3, 1, 1);
+        assert_eq!(lowered.len(), shape.weight_len());
+        let input: Vec<f32> = (0..length * channels)
+            .map(|index| input_ct[(index % channels) * length + index / channels])
+            .collect();
+        let wide_bias = [bias.as_slice(), bias.as_slice()].concat();
+        let mut output = vec![f32::NAN; shape.output_len()];
+        Scalar.conv(
+            &shape,
+            &input,
+            &lowered,
+            &wide_bias,
+            &mut output,
+            Accumulate::Overwrite,
+        );
+        // `[length, 2 channels]` read as `[2 length, channels]`. Each output is a sum of at
+        // most 2 channels + 1 f32 terms, so within that many roundings of its magnitude.
+        for (index, (&found, &exact)) in output.iter().zip(&expected).enumerate() {
+            let tolerance = (2 * channels + 2) as f64 * f32::EPSILON as f64 * magnitude[index];
+            assert!(
+                (found as f64 - exact).abs() <= tolerance,
+                "({length}, {channels}) output {index}: {found} vs {exact}"
+            );
+        }
+    }
+}
