@@ -15,7 +15,7 @@
 //! a tile gathered through vector stores just before, costs several `tdpbusd`s, and the
 //! unit cannot hide more than about one load per multiplication. So every tile is loaded
 //! straight from aligned memory: the input is copied a band at a time into a stack buffer
-//! with its zero padding and each pixel padded to whole 64-channel steps ([`Band`]), laid
+//! with its zero padding and each pixel padded to whole 64-channel steps (`Band`), laid
 //! out so that any 16 consecutive positions read 16 equally spaced pixels at every tap;
 //! the weight tiles are read in place from the file's layout ([`int8_quad_index`]: 64-byte
 //! rows of 16 channels).
@@ -25,7 +25,7 @@
 //! `tdpbusd` as the trunk's, and `128 high + low` is the code, so the sums are the same
 //! exact code sums. Its sequences are 4 to 16 positions, one or two tiles: the vector
 //! kernels spent most of their time widening each weight for every 4 positions. Those of at
-//! most 8 output positions, which hold nearly all its weights, go to [`short_sequence`]:
+//! most 8 output positions, which hold nearly all its weights, go to `short_sequence`:
 //! both digits in one tile, so a pass covers a whole 64-channel block of the layout.
 //!
 //! Linux hands out the tile registers on request only (`arch_prctl(ARCH_REQ_XCOMP_PERM)`);
@@ -81,7 +81,7 @@ static INSTANCE: Amx = Amx {
 impl Amx {
     /// Whether [`Kernels::conv_int8`] runs on the tiles here: activations readable as u8,
     /// whole input-channel quads (a last partial 64-channel step is zero-padded, for
-    /// kernels of up to [`MAX_PARTIAL_TAPS`] taps), whole 32-channel blocks, and a band of
+    /// kernels of up to `MAX_PARTIAL_TAPS` taps), whole 32-channel blocks, and a band of
     /// at least one output pixel fits the stack buffer (other shapes go to [`Avx512`]).
     /// Every int8 layer of the model qualifies, the stem's 196-byte patches included.
     pub fn covers(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
@@ -526,8 +526,8 @@ struct BandBuffer([MaybeUninit<u8>; BAND_BYTES]);
 ///
 /// # Safety
 /// The CPU supports AVX-512F/BW, AMX-TILE and AMX-INT8 and this thread may use the tile
-/// state; the slice lengths are those [`assert_int8_lengths`] checks; [`Amx::covers`] holds
-/// and `plan` is [`Band::plan`]'s.
+/// state; the slice lengths are those the input's `assert_lengths` checks; [`band`] planned
+/// `plan` for this shape and input.
 #[target_feature(enable = "avx512f,avx512bw")]
 unsafe fn conv<I: BandInput>(
     shape: &ConvShape,
@@ -933,10 +933,11 @@ struct Epilogue<'p> {
 
 impl Epilogue<'_> {
     /// `out (+)= round(128 high + low) * scale * weight_scales + bias` for each output
-    /// pixel of `block`'s sum rows (the block's 32 channels), each a product then a sum as the scalar reference
-    /// does. `128 high + low` is formed exactly in i32 when the kernel has at most
-    /// [`MAX_DIGIT_CHANNELS`] products (`i32_exact`: one tap's bound, `|code| <= 16383`,
-    /// `|q_w| <= 128`), else in f64; its conversion to f32 rounds to nearest either way.
+    /// pixel of `block`'s sum rows (the block's 32 channels), each a product then a sum as
+    /// the scalar reference does. `128 high + low` is formed exactly in i32 when the kernel
+    /// has at most [`MAX_DIGIT_CHANNELS`] products (`i32_exact`: one tap's bound,
+    /// `|code| <= 16383`, `|q_w| <= 128`), else in f64; its conversion to f32 rounds to
+    /// nearest either way.
     ///
     /// # Safety
     /// AVX-512F; the block's pixels and channels are inside `output` and the parameters.
