@@ -681,10 +681,10 @@ fn int8_code_convolution_is_bit_identical_on_every_backend() {
                 let what = format!("{name} case {case} {shape:?} {accumulate:?}");
                 assert_same_bits(&found, &expected, &what);
             }
-            // The tiles themselves on every shape of whole 32-channel blocks (the U-Net's
-            // all are), so one quietly sent to the vector kernels cannot pass for them.
+            // The tiles themselves on every shape of whole 32-channel blocks (as all the
+            // U-Net's are), so one quietly sent to the vector kernels cannot pass for them.
             #[cfg(target_arch = "x86_64")]
-            if let Some(amx) = Amx::detect().filter(|_| shape.out_channels % 32 == 0) {
+            if let Some(amx) = Amx::detect().filter(|_| shape.out_channels.is_multiple_of(32)) {
                 let found = code_case.run_on_tiles(amx, accumulate, &initial);
                 let what = format!("tiles case {case} {shape:?} {accumulate:?}");
                 assert_same_bits(&found, &expected, &what);
@@ -806,6 +806,11 @@ fn code_convolution_is_exact_at_the_extremes(channels: usize, out_channels: usiz
                 codes: &codes,
                 scale: 1.0,
             };
+            assert_eq!(
+                Amx::covers_short_sequence(&shape, &input),
+                out_channels == 64,
+                "which tile kernel takes {shape:?}"
+            );
             let parameters = (&packed, &ones, &zeros);
             let taken = amx.conv_int8_codes_on_tiles(
                 &shape,
@@ -1203,7 +1208,8 @@ fn int8_convolution_is_bit_identical_on_every_backend() {
 /// (rows equally spaced: inside a map, strides 1 and 2, 1x1 kernels over whole maps) or
 /// gathered (padding, tiles wrapping onto the next output row, the short last tile of a map,
 /// maps smaller than a tile, a last 64-channel step only partly filled: 196 is the stem's
-/// patches), pixel groups of one and several blocks, both accumulation modes. Bit for bit against the scalar reference on every backend.
+/// patches), pixel groups of one and several blocks, both accumulation modes. Bit for bit
+/// against the scalar reference on every backend.
 #[test]
 fn int8_convolution_on_matrix_tiles_is_bit_identical() {
     let mut rng = Lcg(31);

@@ -108,14 +108,16 @@ impl Kernels for Recording {
     }
 }
 
-/// The int8 convolutions one frame and one inference ask for: the trunk's dense ones
-/// (digit planes), the U-Net's (codes), and those of the U-Net's the tiles take as short
-/// sequences.
-type Recorded = (
-    Vec<(ConvShape, bool)>,
-    Vec<(ConvShape, bool)>,
-    Vec<ConvShape>,
-);
+/// The int8 convolutions one frame and one inference ask for, each with whether the tiles
+/// take it.
+struct Recorded {
+    /// The trunk's dense ones (digit planes).
+    trunk: Vec<(ConvShape, bool)>,
+    /// The U-Net's (codes).
+    unet: Vec<(ConvShape, bool)>,
+    /// Those of the U-Net's the tiles take as short sequences.
+    short_sequences: Vec<ConvShape>,
+}
 
 fn int8_convolutions_of_one_inference(config: ModelConfig) -> Recorded {
     let weights = synthetic_weights_file_as(&config, 1, Quant::Int8).unwrap();
@@ -148,7 +150,11 @@ fn int8_convolutions_of_one_inference(config: ModelConfig) -> Recorded {
     policy.infer(Noise::Seed(3)).unwrap();
     let unet = recording.code_calls.lock().unwrap().clone();
     let short = recording.short_sequences.lock().unwrap().clone();
-    (trunk, unet, short)
+    Recorded {
+        trunk,
+        unet,
+        short_sequences: short,
+    }
 }
 
 #[test]
@@ -157,7 +163,7 @@ fn amx_tiles_take_every_dense_int8_convolution_of_the_product_models() {
         ("metaworld", ModelConfig::METAWORLD),
         ("panda", ModelConfig::PANDA),
     ] {
-        let (calls, ..) = int8_convolutions_of_one_inference(config);
+        let calls = int8_convolutions_of_one_inference(config).trunk;
         let (stem, others): (Vec<_>, Vec<_>) = calls
             .iter()
             .partition(|(shape, _)| shape.in_channels == PATCH_CHANNELS);
@@ -191,9 +197,13 @@ fn amx_tiles_take_every_int8_convolution_of_the_denoiser() {
         ("metaworld", ModelConfig::METAWORLD),
         ("panda", ModelConfig::PANDA),
     ] {
-        let (_, calls, short) = int8_convolutions_of_one_inference(config);
+        let Recorded {
+            unet: calls,
+            short_sequences: short,
+            ..
+        } = int8_convolutions_of_one_inference(config);
         // Per step: two per residual block (12 of them), five 1x1 residuals where the width
-        // changes, two downsamplings, the first (lowered) upsampling and the final block's;
+        // changes, two downsamplings, the first upsampling and the final block's;
         // the head and the second upsampling are f32.
         let steps = config.num_inference_steps as usize;
         assert_eq!(calls.len(), steps * (2 * 12 + 5 + 2 + 1 + 1), "{name}");

@@ -401,11 +401,12 @@ impl<S: StateDictLookup> Lowering<'_, S> {
                 &activated,
             )?;
             let channels = dims[level];
-            let weight = self.get(&format!("{key}.2.conv.weight"), &[channels, channels, 4])?;
-            let lowered = lower_upsample(weight, channels);
+            let weight = self
+                .get(&format!("{key}.2.conv.weight"), &[channels, channels, 4])?
+                .to_vec();
             let bias = self.get(&format!("{key}.2.conv.bias"), &[channels])?;
-            let bias = [bias, bias].concat();
-            self.put(format!("{engine}.upsample.weight"), lowered);
+            let (weight, bias) = lower_upsample(&weight, bias);
+            self.put(format!("{engine}.upsample.weight"), weight);
             self.put(format!("{engine}.upsample.bias"), bias);
         }
         let kernel = self.config.kernel_size as usize;
@@ -533,16 +534,23 @@ pub fn ddim_table(config: &ModelConfig) -> Vec<f32> {
     table
 }
 
-/// ConvTranspose1d(kernel 4, stride 2, padding 1), PyTorch's weight `[in, out, 4]`, as the
-/// ordinary convolution of 3 taps (padding 1) and `2 out` channels the engine runs
-/// (`[3, in, 2 out]`): output `t` of the transposed convolution takes input `s` through tap
-/// `t + 1 - 2 s`, so output `2 j` is tap 3 on input `j - 1` plus tap 1 on input `j`, and
-/// output `2 j + 1` tap 2 on input `j` plus tap 0 on input `j + 1`. Position `j` of the
-/// lowered convolution holds both, even then odd: its `[length, 2 out]` output is the
-/// transposed convolution's `[2 length, out]`. A third of it is zeros: 1.5 times the
-/// transposed convolution's weights, but in int8 0.375 times its f32 bytes, and the U-Net's
-/// int8 kernels run it like any other layer.
-pub fn lower_upsample(weight: &[f32], channels: usize) -> Vec<f32> {
+/// ConvTranspose1d(kernel 4, stride 2, padding 1) of `channels = bias.len()` channels in and
+/// out (PyTorch's weight `[channels, channels, 4]` and bias) as the ordinary convolution of 3
+/// taps (padding 1) and `2 channels` outputs the engine runs: weight `[3, channels,
+/// 2 channels]`, the bias twice. Output `t` of the transposed convolution takes input `s`
+/// through tap `t + 1 - 2 s`, so output `2 j` is tap 3 on input `j - 1` plus tap 1 on input
+/// `j`, and output `2 j + 1` tap 2 on input `j` plus tap 0 on input `j + 1`. Position `j` of
+/// the lowered convolution holds both, even then odd: its `[length, 2 channels]` output is
+/// the transposed convolution's `[2 length, channels]`. A third of it is zeros: 1.5 times
+/// the transposed convolution's weights, but in int8 0.375 times its f32 bytes, and the
+/// U-Net's int8 kernels run it like any other layer.
+pub fn lower_upsample(weight: &[f32], bias: &[f32]) -> (Vec<f32>, Vec<f32>) {
+    let channels = bias.len();
+    assert_eq!(
+        weight.len(),
+        4 * channels * channels,
+        "ConvTranspose1d weight"
+    );
     let wide = 2 * channels;
     let mut lowered = vec![0.0; 3 * channels * wide];
     for input in 0..channels {
@@ -557,7 +565,7 @@ pub fn lower_upsample(weight: &[f32], channels: usize) -> Vec<f32> {
             lowered[at(2, channels + output)] = tap(0);
         }
     }
-    lowered
+    (lowered, [bias, bias].concat())
 }
 
 /// Every engine tensor for `config`, from a PyTorch state dict.

@@ -55,13 +55,12 @@ fn lowered_upsample_is_pytorch_conv_transpose() {
             }
         }
 
-        let lowered = lower_upsample(&weight, channels);
+        let (lowered, wide_bias) = lower_upsample(&weight, &bias);
         let shape = ConvShape::sequence(length, channels, 2 * channels, 3, 1, 1);
         assert_eq!(lowered.len(), shape.weight_len());
         let input: Vec<f32> = (0..length * channels)
             .map(|index| input_ct[(index % channels) * length + index / channels])
             .collect();
-        let wide_bias = [bias.as_slice(), bias.as_slice()].concat();
         let mut output = vec![f32::NAN; shape.output_len()];
         Scalar.conv(
             &shape,
@@ -71,8 +70,10 @@ fn lowered_upsample_is_pytorch_conv_transpose() {
             &mut output,
             Accumulate::Overwrite,
         );
-        // `[length, 2 channels]` read as `[2 length, channels]`. Each output is a sum of at
-        // most 2 channels + 1 f32 terms, so within that many roundings of its magnitude.
+        // `[length, 2 channels]` read as `[2 length, channels]`. Each output sums at most
+        // 2 channels + 1 nonzero terms (the zero weights add exactly); each product and each
+        // addition rounds by at most eps/2 of the sum of magnitudes, so (2 channels + 2) eps
+        // of it is twice that bound.
         for (index, (&found, &exact)) in output.iter().zip(&expected).enumerate() {
             let tolerance = (2 * channels + 2) as f64 * f32::EPSILON as f64 * magnitude[index];
             assert!(

@@ -11,8 +11,9 @@ use super::f32_tile;
 use super::lanes::Zmm;
 use crate::kernels::{Accumulate, ConvShape};
 
-/// Output pixels per tile and output channels per tile (14 was fastest of 8, 12 and 14 on
-/// the panda layers of `--bench kernels`).
+/// Output pixels per tile and output channels per tile where the output channels are not a
+/// multiple of 64 (14 was fastest of 8, 12 and 14 on the panda layers of `--bench kernels`,
+/// before the wide tile took them).
 const PIXELS: usize = 14;
 const CHANNELS: usize = 32;
 

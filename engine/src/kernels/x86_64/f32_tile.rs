@@ -1,14 +1,15 @@
 //! The f32 2-D convolution both x86-64 backends run: one generic body over a vector width
-//! ([`Lanes`]: YMM for AVX2, ZMM for AVX-512, as the U-Net kernels of `sequence` are), instantiated inside each backend's thin
-//! `#[target_feature]` wrapper, where `#[inline(always)]` lets the intrinsics compile with
-//! that backend's instructions.
+//! ([`Lanes`]: YMM for AVX2, ZMM for AVX-512, as the U-Net kernels of `sequence` are),
+//! instantiated inside each backend's thin `#[target_feature]` wrapper, where
+//! `#[inline(always)]` lets the intrinsics compile with that backend's instructions.
 //!
 //! A tile is `N` consecutive output positions (row-major, wrapping onto the next row) x `V`
 //! vectors of output channels. Per input channel and tap, `V` weight loads feed `V` FMAs per
-//! pixel whose tap is inside the input ([`tap_offsets`]); padding taps are skipped per pixel as the scalar reference skips
-//! them. Every pixel is therefore one FMA chain over its inside taps, in tap and
-//! input-channel order from zero, then the bias is added, whichever tile computes it: the
-//! single-pixel path ([`conv_pixel`]) is the one-pixel tile and gives the same bits.
+//! pixel whose tap is inside the input ([`tap_offsets`]); padding taps are skipped per pixel
+//! as the scalar reference skips them. Every pixel is therefore one FMA chain over its
+//! inside taps, in tap and input-channel order from zero, then the bias is added, whichever
+//! tile computes it: the single-pixel path ([`conv_pixel`]) is the one-pixel tile and gives
+//! the same bits.
 
 use super::lanes::Lanes;
 
@@ -23,8 +24,8 @@ use crate::kernels::{Accumulate, ConvShape};
 /// A kernel row whose taps are all inside the input for every pixel (or, for some, all in
 /// the vertical padding) is one run of `kernel_width x in_channels` consecutive input values
 /// per pixel (channels-last), and its weights are as many consecutive rows: it is walked as
-/// one long tap, in the same tap and channel order, so the same bits. For the stem (7x7 over 3 channels) that is a loop of 21
-/// instead of seven loops of 3.
+/// one long tap, in the same tap and channel order, so the same bits. For the stem (7x7 over
+/// 3 channels) that is a loop of 21 instead of seven loops of 3.
 ///
 /// # Safety
 /// The CPU supports `L`; the slices have the lengths `shape` implies; the pixels are in the
@@ -171,8 +172,8 @@ unsafe fn store_tile<L: Lanes, const V: usize>(
     let bias = &bias[channel..channel + V * L::WIDTH];
     for (pixel, sum) in sums.iter().enumerate() {
         let out = &mut output[(first_pixel + pixel) * out_channels + channel..][..V * L::WIDTH];
-        for (half, &value) in sum.iter().enumerate() {
-            let at = L::WIDTH * half;
+        for (vector, &value) in sum.iter().enumerate() {
+            let at = L::WIDTH * vector;
             // SAFETY: `out` and `bias` hold V WIDTH floats; each access covers WIDTH from
             // `at`; the caller runs on `L`'s CPU.
             unsafe {

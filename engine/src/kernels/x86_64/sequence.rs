@@ -2,8 +2,8 @@
 //! AVX2, ZMM for AVX-512; one generic body, instantiated in the thin `#[target_feature]`
 //! wrappers at the end): 1-D convolutions over short sequences (`[T, C]`, T = 16, 8 or 4)
 //! and the FiLM matrix-vector products of f32 weights (int8 ones multiply codes, in
-//! `int8`). Their weights are read at every denoising step, so
-//! these kernels read each weight once per call where they can:
+//! `int8`). Their weights are read at every denoising step, so these kernels read each
+//! weight once per call where they can:
 //! - on sequences of up to 16 positions (all of the product models'), the weights are
 //!   streamed in memory order, a block of eight rows applied to every position while the
 //!   sums sit in registers (59 MB of f32 weights come from L3 at every step);
@@ -132,9 +132,9 @@ unsafe fn convolve<L: Lanes>(
             Accumulate::Add => out.iter_mut().zip(bias).for_each(|(o, b)| *o += b),
         }
     }
-    // Channel blocks outside: a block's weights (at most 5 taps x 768 inputs x 32 channels)
-    // come from L3 for the first tile of positions and from L2 for the others; with the
-    // positions outside, every tile of positions streamed the whole kernel from L3.
+    // Channel blocks outside: a block's weights come from memory for the first tile of
+    // positions and from the caches for the others; with the positions outside, every tile
+    // of positions streamed the whole kernel from memory.
     let mut channel = 0;
     while channel + 2 * L::WIDTH <= vector_channels {
         for first in (0..sequence.positions).step_by(POSITIONS) {
@@ -215,9 +215,9 @@ unsafe fn convolve_f32<L: Lanes>(
 /// weights the U-Net's layers come from L3 at every step, and one sequential stream is
 /// what the hardware prefetcher serves best (measured: the register tiles, which walk rows
 /// `out_channels` apart, ran 2-4x slower than this on cold weights). Every output's sum is
-/// one chain from the bias, in tap and input-channel order, as before the rows were
-/// blocked: updating the sums in memory once per row (a load and a store per position and
-/// vector for every row) held the sequences of 8 and 16 positions to 9-12 GB/s of weights.
+/// one chain from the bias, in tap and input-channel order. Updating the sums in memory once
+/// per row (a load and a store per position and vector for every row) held the sequences of
+/// 8 and 16 positions to 9-12 GB/s of weights.
 ///
 /// # Safety
 /// The CPU supports `L`.
@@ -258,9 +258,9 @@ unsafe fn convolve_streaming<L: Lanes>(
             ($($count:literal => ($first:literal, $second:literal)),*) => {
                 match end - start {
                     $(
-                        // SAFETY: the caller runs on `L`'s CPU; `inside` keeps the tap's
-                        // input rows of these positions inside the input, and the asserts
-                        // above their output rows inside the output.
+                        // SAFETY: the caller runs on `L`'s CPU; `stream_tap` asserts what it
+                        // reads and writes (`inside` keeps the tap's input rows of these
+                        // positions inside the input).
                         $count => unsafe {
                             stream_tap::<L, $first, $second>(
                                 block,
@@ -274,6 +274,7 @@ unsafe fn convolve_streaming<L: Lanes>(
                 }
             };
         }
+        const { assert!(STREAMING_POSITIONS == 16, "the table below covers 1 to 16") };
         positions!(
             1 => (1, 0), 2 => (2, 0), 3 => (3, 0), 4 => (4, 0), 5 => (5, 0), 6 => (6, 0),
             7 => (7, 0), 8 => (8, 0), 9 => (8, 1), 10 => (8, 2), 11 => (8, 3), 12 => (8, 4),
@@ -286,14 +287,17 @@ unsafe fn convolve_streaming<L: Lanes>(
 /// registers: eight rows of 256 channels are 8 KB of one stream.
 const STREAMED_ROWS: usize = 8;
 
-/// One tap of [`convolve_streaming`] for `P + Q` consecutive output positions: `out[p] +=
-/// sum_c input[p, c] block[c]`, `input` and `out` from the first position's rows, the
-/// positions `strides` floats apart in each. The first `P` positions' sums, then the other
-/// `Q`'s, stay in registers over a block of rows (up to 8 of each: 16 sums spilled).
+/// One tap of [`convolve_streaming`] for `P + Q` consecutive output positions:
+/// `out[p] += sum_c input[p, c] block[c]`, `input` and `out` from the first position's rows,
+/// the positions `strides` floats apart in each. The sums of the first `P` positions, then
+/// of the other `Q`, stay in registers over a block of rows (at most 8 positions at a time;
+/// all 16 at once spilled).
 ///
 /// # Safety
-/// The CPU supports `L`; `input` holds each position's `in_channels` values and `out` its
-/// `out_channels` sums; `block` is `[in_channels, out_channels]`.
+/// The CPU supports `L`.
+///
+/// # Panics
+/// If `input`, `out` or `block` is shorter than the positions and channels need.
 #[inline(always)]
 unsafe fn stream_tap<L: Lanes, const P: usize, const Q: usize>(
     block: &[f32],
@@ -302,7 +306,7 @@ unsafe fn stream_tap<L: Lanes, const P: usize, const Q: usize>(
     (in_channels, out_channels): (usize, usize),
 ) {
     let positions = P + Q;
-    assert!(input.len() > (positions - 1) * input_stride + in_channels - 1);
+    assert!(input.len() >= (positions - 1) * input_stride + in_channels);
     assert!(out.len() >= (positions - 1) * out_stride + out_channels);
     let vector_channels = out_channels - out_channels % L::WIDTH;
     let (input, out) = (input.as_ptr(), out.as_mut_ptr());
@@ -363,7 +367,9 @@ unsafe fn stream_tap<L: Lanes, const P: usize, const Q: usize>(
 /// in registers from the load to the store.
 ///
 /// # Safety
-/// The CPU supports `L`; every pointer covers what it is read or written at.
+/// The CPU supports `L`; `input` is readable and `out` writable at `p * stride + ...` for
+/// every `p < P` (`input` at `first_row .. first_row + rows`, `out` at `channel ..
+/// channel + WIDTH`); `lanes` holds `rows` rows of `WIDTH` floats `out_channels` apart.
 #[inline(always)]
 unsafe fn stream_positions<L: Lanes, const P: usize>(
     (input, out): (*const f32, *mut f32),

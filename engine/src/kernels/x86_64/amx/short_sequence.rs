@@ -59,7 +59,7 @@ pub(super) fn applies(shape: &ConvShape, channels: usize) -> bool {
 /// # Safety
 /// The CPU supports AVX-512F/BW, AMX-TILE and AMX-INT8 and this thread may use the tile
 /// state; the slice lengths are those the input's `assert_lengths` checks; [`applies`]
-/// holds, and so does [`super::band`].
+/// holds and [`super::band`] accepts the shape.
 #[target_feature(enable = "avx512f,avx512bw")]
 pub(super) unsafe fn conv<I: BandInput>(
     shape: &ConvShape,
@@ -190,8 +190,9 @@ unsafe fn pass_sums<I: BandInput>(
 /// loaded just before its product.
 ///
 /// # Safety
-/// Tiles configured as [`TILE_CONFIG`] says; each pointer starts 16 readable rows of 64
-/// bytes, each row 64-byte aligned for speed.
+/// Tiles configured as [`TILE_CONFIG`] says; `activations` starts 16 readable 64-byte rows
+/// `row_step` apart, `weights` 16 readable 256-byte rows `quad_stride` apart; rows 64-byte
+/// aligned for speed.
 #[inline(always)]
 unsafe fn multiply_step<I: BandInput>(
     (activations, row_step): (*const u8, usize),
@@ -231,7 +232,8 @@ unsafe fn multiply_step<I: BandInput>(
 /// digit sums (rows `p` and `POSITIONS + p` of its tile) through the epilogue.
 ///
 /// # Safety
-/// AVX-512F; the pass's channels are inside the output and the parameters.
+/// AVX-512F; the pass's channels are inside the output and the parameters; `sums` were
+/// written by [`super::store_sums`].
 #[inline(always)]
 unsafe fn write_pass(epilogue: &Epilogue<'_>, sums: &PassSums, channel: usize, output: &mut [f32]) {
     for position in 0..epilogue.out_width {
