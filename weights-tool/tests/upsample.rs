@@ -4,33 +4,24 @@
 
 use scdp_engine::kernels::scalar::Scalar;
 use scdp_engine::kernels::{Accumulate, ConvShape, Kernels};
+use scdp_engine::rng::NoiseRng;
 use weights_tool::lowering::lower_upsample;
 
-/// A small deterministic generator of values in [-1, 1).
-struct Lcg(u64);
-
-impl Lcg {
-    fn next(&mut self) -> f32 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((self.0 >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-    }
-
-    fn vec(&mut self, len: usize) -> Vec<f32> {
-        (0..len).map(|_| self.next()).collect()
-    }
+/// `len` standard normal values from the engine's seeded generator.
+fn normal(rng: &mut NoiseRng, len: usize) -> Vec<f32> {
+    let mut values = vec![0.0; len];
+    rng.fill_normal(&mut values);
+    values
 }
 
 #[test]
 fn lowered_upsample_is_pytorch_conv_transpose() {
-    let mut rng = Lcg(5);
+    let mut rng = NoiseRng::new(5);
     for (length, channels) in [(1, 1), (1, 3), (2, 5), (4, 16), (7, 9), (8, 24)] {
         // PyTorch's layout: input [channels, length], weight [in, out, 4].
-        let input_ct = rng.vec(channels * length);
-        let weight = rng.vec(channels * channels * 4);
-        let bias = rng.vec(channels);
+        let input_ct = normal(&mut rng, channels * length);
+        let weight = normal(&mut rng, channels * channels * 4);
+        let bias = normal(&mut rng, channels);
         // y[o, t] = b[o] + sum over s, k with t = 2 s + k - 1 of x[i, s] w[i, o, k].
         let mut expected = vec![0.0f64; 2 * length * channels];
         let mut magnitude = vec![0.0f64; expected.len()];
