@@ -111,8 +111,8 @@ impl ArenaPlan {
 ///   computed so far;
 /// - `taps`: for those levels, the projection's input C(level + 1), `[H_n, W_n, C_n]`, in
 ///   f32, or in int8 (bytes, same element offsets) for int8 weights;
-/// - `tap_scales`: for int8 weights, the scale of each level's quantized tap (one per
-///   level);
+/// - `tap_scales`: for int8 weights, the scale of each level's quantized tap and whether
+///   its digits are all nonnegative (1 or 0; two values per level);
 /// - `computed`: one bit per cell of those levels (u32 words), set once the cell is.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct FrameLayout {
@@ -149,7 +149,7 @@ impl FrameLengths {
         }
         let maps = aligned(cells * config.feature_dim as u64);
         let taps = aligned(taps);
-        let tap_scales = aligned(PYRAMID_LEVELS as u64);
+        let tap_scales = aligned(2 * PYRAMID_LEVELS as u64);
         let computed = aligned(on_demand_words);
         FrameLengths {
             maps,

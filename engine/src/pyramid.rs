@@ -113,6 +113,10 @@ fn normalize(
     }
 }
 
+/// Cells of an on-demand projection computed together: an inference step's anchors sample
+/// at most `anchor_count x 4` cells of a level (36 for the product models).
+const CELL_BATCH: usize = 48;
+
 /// One history frame's persistent buffers, as [`FrameLayout`] lays them out.
 pub struct FrameStore<'a> {
     pub maps: &'a mut [f32],
@@ -125,7 +129,8 @@ pub struct FrameStore<'a> {
 struct LevelStore<'s> {
     map: &'s mut [f32],
     taps: &'s mut [f32],
-    /// The scale of `taps` when int8 (empty for a dense level).
+    /// The scale of `taps` when int8 and whether they are all nonnegative (1 or 0), as
+    /// [`kernels::store_input`] returned them (empty for a dense level).
     tap_scale: &'s mut [f32],
     computed: &'s mut [u32],
 }
@@ -162,7 +167,7 @@ impl<'a> FrameStore<'a> {
         LevelStore {
             map,
             taps: &mut self.taps[tap_at..][..cells * config.pyramid_channels(level)],
-            tap_scale: &mut self.tap_scales[level..][..1],
+            tap_scale: &mut self.tap_scales[2 * level..][..2],
             computed: &mut self.computed[word_at..][..cells.div_ceil(32)],
         }
     }
@@ -194,8 +199,12 @@ impl<'a> FrameStore<'a> {
         }
         let store = self.level(config, level);
         let (height, width) = config.pyramid_size(level);
-        let feature_dim = config.feature_dim as usize;
         let shape = projection_shape(config, level);
+        let input = (&*store.taps, store.tap_scale[0], store.tap_scale[1] == 1.0);
+        let projection = (&projection.weight, projection.bias);
+        // The cells not computed yet, each once, a batch at a time: the kernels take several
+        // pixels in one pass over the projection's weights.
+        let mut batch = heapless::Vec::<(usize, usize), CELL_BATCH>::new();
         for (row, column) in cells {
             if row >= height || column >= width {
                 continue;
@@ -205,16 +214,15 @@ impl<'a> FrameStore<'a> {
             if store.computed[word] & bit != 0 {
                 continue;
             }
-            kernels::convolve_pixel(
-                kernels,
-                &shape,
-                (store.taps, store.tap_scale[0]),
-                (&projection.weight, projection.bias),
-                (row, column),
-                &mut store.map[cell * feature_dim..][..feature_dim],
-            );
             store.computed[word] |= bit;
+            if batch.is_full() {
+                kernels::convolve_pixels(kernels, &shape, input, projection, &batch, store.map);
+                batch.clear();
+            }
+            // Room was made just above.
+            let _ = batch.push((row, column));
         }
+        kernels::convolve_pixels(kernels, &shape, input, projection, &batch, store.map);
     }
 
     /// Computes every cell of `level` not computed yet: the map is then what a dense
@@ -413,6 +421,7 @@ pub fn encode(
                     let (scale, nonnegative) =
                         kernels::store_input(kernels, &projection.weight, values, taps);
                     tap_scale[0] = scale;
+                    tap_scale[1] = f32::from(u8::from(nonnegative));
                     computed.fill(0);
                     if is_int8(projection) {
                         let bytes: &[i8] = bytemuck::cast_slice(&*taps);
@@ -476,8 +485,10 @@ pub fn encode(
     let store = frame.level(config, level);
     let values = &buffers[0][..shape.input_len()];
     if config.projection_on_demand(level) {
-        let (scale, _) = kernels::store_input(kernels, &projection.weight, values, store.taps);
+        let (scale, nonnegative) =
+            kernels::store_input(kernels, &projection.weight, values, store.taps);
         store.tap_scale[0] = scale;
+        store.tap_scale[1] = f32::from(u8::from(nonnegative));
         store.computed.fill(0);
     } else {
         kernels::convolve(

@@ -1582,7 +1582,93 @@ fn single_pixel_convolution_equals_the_dense_kernel_bit_for_bit() {
                     );
                 }
             }
+            // The same pixels asked for in batches (every third, then the rest), into a map
+            // where nothing else may be written.
+            let all: Vec<(usize, usize)> = (0..shape.out_height())
+                .flat_map(|y| (0..shape.out_width()).map(move |x| (y, x)))
+                .collect();
+            let (first, rest): (Vec<_>, Vec<_>) = all
+                .iter()
+                .enumerate()
+                .partition(|(index, _)| index % 3 == 0);
+            let mut batched = vec![f32::NAN; shape.output_len()];
+            for batch in [first, rest] {
+                let pixels: Vec<(usize, usize)> = batch.into_iter().map(|(_, &p)| p).collect();
+                kernels.conv_int8_pixels(
+                    &shape,
+                    &quantized,
+                    &weight_int8,
+                    &weight_scales,
+                    &bias,
+                    &pixels,
+                    &mut batched,
+                );
+            }
+            assert_same_bits(
+                &batched,
+                &dense_int8,
+                &format!("{name} case {case} int8 batches"),
+            );
         }
+    }
+}
+
+/// The AMX tiles' batches of output pixels (the projections evaluated at the anchors'
+/// cells), 8 a pass with each pixel's patch gathered per tap: bit for bit the scalar
+/// reference's single pixels, on maps with borders and padding, strides 1 and 2, 1x1 and
+/// 3x3 kernels, several 64-channel steps and blocks, batches with repeated pixels and of
+/// every size up to 50. Only the asked pixels are written. Each batch is checked to run on
+/// the tiles.
+#[cfg(target_arch = "x86_64")]
+#[test]
+fn amx_pixel_batches_are_bit_identical_to_the_scalar_reference() {
+    // Fails here when CI requires the amx backend and it cannot run.
+    backends();
+    let Some(amx) = Amx::detect() else {
+        eprintln!("no AMX on this machine: the pixel batches cannot run on tiles here");
+        return;
+    };
+    let mut rng = Lcg(37);
+    for case in 0..24 {
+        let (kernel, stride) = [(3, 1), (3, 1), (3, 2), (1, 1)][case % 4];
+        let in_channels = 64 * (1 + rng.below(4));
+        let out_channels = 64 * (1 + rng.below(2));
+        let shape = ConvShape::square(
+            (2 + rng.below(14), 2 + rng.below(18), in_channels),
+            out_channels,
+            kernel,
+            stride,
+            kernel / 2,
+        );
+        let planes = digit_planes(&random_codes(&mut rng, shape.input_len(), true));
+        let input = DigitRows::from_planes(&planes, 0.01 + rng.next().abs(), true);
+        let weight = random_i8(&mut rng, shape.int8_weight_len());
+        let weight_scales: Vec<f32> = (0..out_channels)
+            .map(|_| 0.001 + rng.next().abs() * 0.01)
+            .collect();
+        let bias = rng.vec(out_channels);
+        let count = 1 + rng.below(50);
+        let pixels: Vec<(usize, usize)> = (0..count)
+            .map(|_| (rng.below(shape.out_height()), rng.below(shape.out_width())))
+            .collect();
+        let mut expected = vec![f32::NAN; shape.output_len()];
+        for &(y, x) in &pixels {
+            let at = (y * shape.out_width() + x) * out_channels;
+            Scalar.conv_int8_pixel(
+                &shape,
+                &input,
+                &weight,
+                &weight_scales,
+                &bias,
+                (y, x),
+                &mut expected[at..at + out_channels],
+            );
+        }
+        let mut found = vec![f32::NAN; shape.output_len()];
+        let parameters = (&weight[..], &weight_scales[..], &bias[..]);
+        let taken = amx.conv_int8_pixels_on_tiles(&shape, &input, parameters, &pixels, &mut found);
+        assert!(taken, "case {case}: the tiles did not take {shape:?}");
+        assert_same_bits(&found, &expected, &format!("case {case} {shape:?}"));
     }
 }
 

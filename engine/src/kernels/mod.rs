@@ -365,6 +365,25 @@ pub trait Kernels: Sync {
         );
     }
 
+    /// [`conv_int8_pixel`](Self::conv_int8_pixel) at each of `pixels` (`(row, column)`,
+    /// inside the output), into `output`, the whole output map: only those pixels are
+    /// written. The projections evaluated on demand ask for the cells an inference step's
+    /// anchors sample, a few dozen at a time.
+    #[allow(clippy::too_many_arguments)]
+    fn conv_int8_pixels(
+        &self,
+        shape: &ConvShape,
+        input: &DigitRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        pixels: &[(usize, usize)],
+        output: &mut [f32],
+    ) {
+        let parameters = (weight, weight_scales, bias);
+        each_pixel(self, shape, input, parameters, pixels, output)
+    }
+
     /// `output[r] = base[r] + sum_c weight[r, c] input[c]` for a row-major `[rows, cols]`.
     fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]);
 
@@ -583,7 +602,7 @@ pub fn convolve(
     }
 }
 
-/// Keeps a layer's input for later [`convolve_pixel`] calls, in the form its weights
+/// Keeps a layer's input for later [`convolve_pixels`] calls, in the form its weights
 /// read: copied for f32 weights; quantized for int8 weights, the two digit planes as bytes
 /// at the front of `values`. Returns the input's scale (1 for f32 weights, unused) and
 /// whether every code is nonnegative (true for f32 weights).
@@ -606,37 +625,66 @@ pub fn store_input(
     }
 }
 
-/// Output pixel `pixel` of [`convolve`] with [`Accumulate::Overwrite`], into `output`,
-/// from an input kept by [`store_input`] (`values` and the scale it returned).
-pub fn convolve_pixel(
-    kernels: &dyn Kernels,
+/// [`Kernels::conv_int8_pixels`] one [`Kernels::conv_int8_pixel`] at a time.
+pub fn each_pixel<K: Kernels + ?Sized>(
+    kernels: &K,
     shape: &ConvShape,
-    (values, scale): (&[f32], f32),
-    (weight, bias): (&Weight<'_>, &[f32]),
-    pixel: (usize, usize),
+    input: &DigitRows<'_>,
+    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
+    pixels: &[(usize, usize)],
     output: &mut [f32],
 ) {
+    let (out_width, out_channels) = (shape.out_width(), shape.out_channels);
+    for &(row, column) in pixels {
+        let out = &mut output[(row * out_width + column) * out_channels..][..out_channels];
+        kernels.conv_int8_pixel(
+            shape,
+            input,
+            weight,
+            weight_scales,
+            bias,
+            (row, column),
+            out,
+        );
+    }
+}
+
+/// Output pixels `pixels` of [`convolve`] with [`Accumulate::Overwrite`], into their places
+/// in `output` (the whole map), from an input kept by [`store_input`] (`values` and the
+/// scale and sign flag it returned).
+pub fn convolve_pixels(
+    kernels: &dyn Kernels,
+    shape: &ConvShape,
+    (values, scale, nonnegative): (&[f32], f32, bool),
+    (weight, bias): (&Weight<'_>, &[f32]),
+    pixels: &[(usize, usize)],
+    output: &mut [f32],
+) {
+    let (out_width, out_channels) = (shape.out_width(), shape.out_channels);
     match *weight {
         Weight::F32(weights) => {
             let input = &values[..shape.input_len()];
-            kernels.conv_pixel(shape, input, weights, bias, pixel, output)
+            for &(row, column) in pixels {
+                let out = &mut output[(row * out_width + column) * out_channels..][..out_channels];
+                kernels.conv_pixel(shape, input, weights, bias, (row, column), out);
+            }
         }
         Weight::Int8 {
             values: weights,
             scales: weight_scales,
         } => {
             let values: &[i8] = &bytemuck::cast_slice(values)[..2 * shape.input_len()];
-            // Not kept with the input: found on the rows this pixel reads (a few hundred
-            // bytes against that many times `out_channels` products). The flag only lets the
-            // fast paths run; every path gives the same bits.
-            let in_channels = shape.in_channels;
-            let nonnegative = scalar::taps_inside(shape, pixel.0, pixel.1).all(|(row, _)| {
-                values[row * in_channels..][..in_channels]
-                    .iter()
-                    .all(|&value| value >= 0)
-            });
             let digits = DigitRows::from_planes(values, scale, nonnegative);
-            kernels.conv_int8_pixel(shape, &digits, weights, weight_scales, bias, pixel, output)
+            let parameters = (weights, weight_scales, bias);
+            kernels.conv_int8_pixels(
+                shape,
+                &digits,
+                parameters.0,
+                parameters.1,
+                parameters.2,
+                pixels,
+                output,
+            )
         }
     }
 }

@@ -135,6 +135,40 @@ impl Amx {
         self.on_tiles(shape, input, parameters, output, accumulate)
     }
 
+    /// [`Kernels::conv_int8_pixels`] on the tiles, 8 pixels a pass (`short_sequence`'s
+    /// kernel over pixels gathered per tap); `false`, with nothing written, when they do not
+    /// apply: the input must be nonnegative, in whole 64-channel steps, the output whole
+    /// 64-channel blocks. Tests call it to know the tiles ran.
+    ///
+    /// # Panics
+    /// If a slice is shorter than the contract makes it or a pixel lies outside the output.
+    pub fn conv_int8_pixels_on_tiles(
+        &self,
+        shape: &ConvShape,
+        input: &DigitRows<'_>,
+        parameters: (&[i8], &[f32], &[f32]),
+        pixels: &[(usize, usize)],
+        output: &mut [f32],
+    ) -> bool {
+        let channels = DigitRows::channels(shape);
+        if band(shape, input).is_none() || !short_sequence::applies_to_cells(shape, channels) {
+            return false;
+        }
+        input.assert_lengths(shape, parameters, output.len());
+        let (out_height, out_width) = (shape.out_height(), shape.out_width());
+        for &(row, column) in pixels {
+            assert!(
+                row < out_height && column < out_width,
+                "pixel outside the output"
+            );
+        }
+        // SAFETY: `self` exists only once AMX, AVX-512 and the permission were detected; the
+        // lengths and pixels were checked just above, the shape by `band` and
+        // `applies_to_cells`.
+        unsafe { short_sequence::conv_cells(shape, input, parameters, pixels, output) };
+        true
+    }
+
     /// Either convolution on the tiles, when they take it.
     fn on_tiles<I: BandInput>(
         &self,
@@ -1047,6 +1081,22 @@ impl Kernels for Amx {
         // One pixel is one row of a tile: the VNNI path is as fast, with the same bits.
         self.avx512
             .conv_int8_pixel(shape, input, weight, weight_scales, bias, pixel, output)
+    }
+
+    fn conv_int8_pixels(
+        &self,
+        shape: &ConvShape,
+        input: &DigitRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        pixels: &[(usize, usize)],
+        output: &mut [f32],
+    ) {
+        let parameters = (weight, weight_scales, bias);
+        if !self.conv_int8_pixels_on_tiles(shape, input, parameters, pixels, output) {
+            crate::kernels::each_pixel(self.avx512, shape, input, parameters, pixels, output)
+        }
     }
 
     fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {

@@ -10,6 +10,10 @@
 //! weight read once in address order. The input is laid out once per tap (an im2col of at
 //! most 8 positions), so the tiles read it whatever the stride and padding.
 //!
+//! The same pass serves chosen pixels of a 2-D map, 8 at a time ([`conv_cells`]): the
+//! projections evaluated on demand at the cells an inference step's anchors sample, which
+//! ran one pixel at a time on the vector units.
+//!
 //! The low digits are 0..=127, the same value as signed or unsigned bytes, so the product
 //! the high digits take (`tdpbssd` for the U-Net's signed codes) serves both, and the sums
 //! are the general kernel's exact sums: the same bits.
@@ -46,10 +50,84 @@ pub(super) fn applies(shape: &ConvShape, channels: usize) -> bool {
         && shape.kernel_height == 1
         && shape.padding_height == 0
         && shape.out_width() <= POSITIONS
-        && channels == shape.in_channels
+        && applies_to_cells(shape, channels)
+}
+
+/// Whether [`conv_cells`] takes `shape`'s output pixels a few at a time: whole 64-channel
+/// steps in, whole layout blocks out, every tap's activation tiles fitting the stack buffer.
+/// The caller has checked what every tile kernel needs ([`super::band`]).
+pub(super) fn applies_to_cells(shape: &ConvShape, channels: usize) -> bool {
+    channels == shape.in_channels
         && channels.is_multiple_of(CHANNELS_PER_STEP)
         && shape.out_channels.is_multiple_of(PASS_CHANNELS)
-        && shape.kernel_width * ROWS * channels <= BAND_BYTES
+        && shape.kernel_height * shape.kernel_width * ROWS * channels <= BAND_BYTES
+}
+
+/// The output pixels one call computes, at most [`POSITIONS`]: where each reads the input
+/// at each tap, and where its outputs go.
+trait OutputPixels {
+    fn count(&self) -> usize;
+
+    /// The input pixel (row-major index) position `position` reads at kernel tap
+    /// `(kernel_y, kernel_x)`, `None` in the padding.
+    fn input_pixel(&self, shape: &ConvShape, position: usize, tap: (usize, usize))
+    -> Option<usize>;
+
+    /// The output pixel (row-major index) of position `position`.
+    fn output_pixel(&self, position: usize) -> usize;
+}
+
+/// The whole output of a short sequence.
+struct Sequence(usize);
+
+impl OutputPixels for Sequence {
+    fn count(&self) -> usize {
+        self.0
+    }
+
+    fn input_pixel(
+        &self,
+        shape: &ConvShape,
+        position: usize,
+        (_, tap): (usize, usize),
+    ) -> Option<usize> {
+        (position * shape.stride + tap)
+            .checked_sub(shape.padding_width)
+            .filter(|&pixel| pixel < shape.in_width)
+    }
+
+    fn output_pixel(&self, position: usize) -> usize {
+        position
+    }
+}
+
+/// Chosen pixels `(row, column)` of a 2-D output `out_width` pixels wide.
+struct Cells<'c> {
+    cells: &'c [(usize, usize)],
+    out_width: usize,
+}
+
+impl OutputPixels for Cells<'_> {
+    fn count(&self) -> usize {
+        self.cells.len()
+    }
+
+    fn input_pixel(
+        &self,
+        shape: &ConvShape,
+        position: usize,
+        (kernel_y, kernel_x): (usize, usize),
+    ) -> Option<usize> {
+        let (row, column) = self.cells[position];
+        let y = (row * shape.stride + kernel_y).checked_sub(shape.padding_height)?;
+        let x = (column * shape.stride + kernel_x).checked_sub(shape.padding_width)?;
+        (y < shape.in_height && x < shape.in_width).then_some(y * shape.in_width + x)
+    }
+
+    fn output_pixel(&self, position: usize) -> usize {
+        let (row, column) = self.cells[position];
+        row * self.out_width + column
+    }
 }
 
 /// The convolution, 64 output channels a pass: each tap's activation rows, laid out by
@@ -64,15 +142,68 @@ pub(super) fn applies(shape: &ConvShape, channels: usize) -> bool {
 pub(super) unsafe fn conv<I: BandInput>(
     shape: &ConvShape,
     input: &I,
+    parameters: Parameters<'_>,
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    let pixels = Sequence(shape.out_width());
+    // SAFETY: the caller's promises.
+    unsafe { conv_pixels(shape, input, parameters, &pixels, output, accumulate) }
+}
+
+/// Output pixels `cells` of the convolution (overwritten), [`POSITIONS`] at a time; the
+/// others are not touched.
+///
+/// # Safety
+/// As for [`conv`], with [`applies_to_cells`] for [`applies`]; every cell is inside the
+/// output.
+#[target_feature(enable = "avx512f,avx512bw")]
+pub(super) unsafe fn conv_cells<I: BandInput>(
+    shape: &ConvShape,
+    input: &I,
+    parameters: Parameters<'_>,
+    cells: &[(usize, usize)],
+    output: &mut [f32],
+) {
+    for group in cells.chunks(POSITIONS) {
+        let pixels = Cells {
+            cells: group,
+            out_width: shape.out_width(),
+        };
+        // SAFETY: the caller's promises.
+        unsafe {
+            conv_pixels(
+                shape,
+                input,
+                parameters,
+                &pixels,
+                output,
+                Accumulate::Overwrite,
+            )
+        }
+    }
+}
+
+/// The output pixels `pixels` of the convolution: [`fill_taps`], then a pass per 64-channel
+/// block of the weights.
+///
+/// # Safety
+/// As for [`conv`]; [`applies_to_cells`] holds; `pixels` has at most [`POSITIONS`]
+/// positions, each reading inside the input and writing inside the output.
+#[inline(always)]
+unsafe fn conv_pixels<I: BandInput, P: OutputPixels>(
+    shape: &ConvShape,
+    input: &I,
     (weight, weight_scales, bias): Parameters<'_>,
+    pixels: &P,
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
     let channels = shape.in_channels;
-    let taps = shape.kernel_width;
+    let taps = shape.kernel_height * shape.kernel_width;
     let mut tap_rows = BandBuffer([MaybeUninit::uninit(); BAND_BYTES]);
     // SAFETY: AVX-512F/BW; `applies` bounds the taps' rows by the buffer.
-    unsafe { fill_taps(shape, input, &mut tap_rows) };
+    unsafe { fill_taps(shape, input, pixels, &mut tap_rows) };
     let epilogue = Epilogue {
         i32_exact: !I::SIGNED_HIGH && taps * channels <= MAX_DIGIT_CHANNELS,
         scale: input.scale(),
@@ -92,7 +223,7 @@ pub(super) unsafe fn conv<I: BandInput>(
         let set = match pending.take() {
             Some((set, previous)) => {
                 // SAFETY: AVX-512F; the previous pass's channels are inside the output.
-                unsafe { write_pass(&epilogue, &sums[set], previous, output) };
+                unsafe { write_pass(&epilogue, &sums[set], pixels, previous, output) };
                 1 - set
             }
             None => 0,
@@ -103,39 +234,47 @@ pub(super) unsafe fn conv<I: BandInput>(
     }
     if let Some((set, channel)) = pending {
         // SAFETY: as above.
-        unsafe { write_pass(&epilogue, &sums[set], channel, output) };
+        unsafe { write_pass(&epilogue, &sums[set], pixels, channel, output) };
     }
     // SAFETY: as for `ldtilecfg`; releasing lets the OS skip saving 8 KB of tile data.
     unsafe { asm!("tilerelease", options(nostack, nomem)) };
 }
 
 /// Lays the input out for the tiles: for every tap, [`ROWS`] rows of `in_channels` bytes,
-/// row `p` the high digits and row `POSITIONS + p` the low digits of the input pixel output
-/// position `p` reads at that tap, zero where that is padding or past the output.
+/// row `p` the high digits and row `POSITIONS + p` the low digits of the input pixel
+/// position `p` reads at that tap, zero where that is padding or past the positions.
 ///
 /// # Safety
-/// AVX-512F/BW; [`applies`] holds.
+/// AVX-512F/BW; [`applies_to_cells`] holds; `pixels` has at most [`POSITIONS`] positions
+/// reading inside the input.
 #[inline(always)]
-unsafe fn fill_taps<I: BandInput>(shape: &ConvShape, input: &I, buffer: &mut BandBuffer) {
+unsafe fn fill_taps<I: BandInput, P: OutputPixels>(
+    shape: &ConvShape,
+    input: &I,
+    pixels: &P,
+    buffer: &mut BandBuffer,
+) {
     let pitch = shape.in_channels;
-    let out_width = shape.out_width();
     let base = buffer.0.as_mut_ptr().cast::<u8>();
-    for tap in 0..shape.kernel_width {
-        for position in 0..POSITIONS {
-            // SAFETY: `applies` keeps every tap's rows inside the buffer; `pitch` is a
-            // multiple of 64, so each row is 64-byte aligned.
-            let high = unsafe { base.add((tap * ROWS + position) * pitch) };
-            let low = unsafe { high.add(POSITIONS * pitch) };
-            let pixel = (position * shape.stride + tap)
-                .checked_sub(shape.padding_width)
-                .filter(|&pixel| pixel < shape.in_width && position < out_width);
-            // SAFETY: the pixel is inside the input; each row is `pitch` writable bytes.
-            unsafe {
-                match pixel {
-                    Some(pixel) => input.copy_digits(shape, (pixel, 1), (high, low), pitch),
-                    None => {
-                        high.write_bytes(0, pitch);
-                        low.write_bytes(0, pitch);
+    for kernel_y in 0..shape.kernel_height {
+        for kernel_x in 0..shape.kernel_width {
+            let tap = kernel_y * shape.kernel_width + kernel_x;
+            for position in 0..POSITIONS {
+                // SAFETY: `applies_to_cells` keeps every tap's rows inside the buffer;
+                // `pitch` is a multiple of 64, so each row is 64-byte aligned.
+                let high = unsafe { base.add((tap * ROWS + position) * pitch) };
+                let low = unsafe { high.add(POSITIONS * pitch) };
+                let pixel = (position < pixels.count())
+                    .then(|| pixels.input_pixel(shape, position, (kernel_y, kernel_x)))
+                    .flatten();
+                // SAFETY: the pixel is inside the input; each row is `pitch` writable bytes.
+                unsafe {
+                    match pixel {
+                        Some(pixel) => input.copy_digits(shape, (pixel, 1), (high, low), pitch),
+                        None => {
+                            high.write_bytes(0, pitch);
+                            low.write_bytes(0, pitch);
+                        }
                     }
                 }
             }
@@ -169,7 +308,7 @@ unsafe fn pass_sums<I: BandInput>(
             options(nostack, nomem)
         )
     };
-    for tap in 0..shape.kernel_width {
+    for tap in 0..shape.kernel_height * shape.kernel_width {
         for step in (0..pitch).step_by(CHANNELS_PER_STEP) {
             // SAFETY: the tap's rows hold `pitch` bytes from each row start; the step's 16
             // quads of the block's 64 channels are inside `weight` (the caller's promise).
@@ -229,14 +368,22 @@ unsafe fn multiply_step<I: BandInput>(
 }
 
 /// Writes a pass's outputs: for each output position, each 16-channel group's high and low
-/// digit sums (rows `p` and `POSITIONS + p` of its tile) through the epilogue.
+/// digit sums (rows `p` and `POSITIONS + p` of its tile) through the epilogue, to its output
+/// pixel.
 ///
 /// # Safety
 /// AVX-512F; the pass's channels are inside the output and the parameters; `sums` were
 /// written by [`super::store_sums`].
 #[inline(always)]
-unsafe fn write_pass(epilogue: &Epilogue<'_>, sums: &PassSums, channel: usize, output: &mut [f32]) {
-    for position in 0..epilogue.out_width {
+unsafe fn write_pass<P: OutputPixels>(
+    epilogue: &Epilogue<'_>,
+    sums: &PassSums,
+    pixels: &P,
+    channel: usize,
+    output: &mut [f32],
+) {
+    for position in 0..pixels.count() {
+        let pixel = pixels.output_pixel(position);
         for (group, tile) in sums.iter().enumerate() {
             let channel = channel + group * SUM_COLUMNS;
             // SAFETY: AVX-512F; both rows are 64 aligned bytes of the stored tile.
@@ -244,7 +391,7 @@ unsafe fn write_pass(epilogue: &Epilogue<'_>, sums: &PassSums, channel: usize, o
                 let high = _mm512_load_si512(tile.as_ptr().add(position * ROW_BYTES).cast());
                 let low =
                     _mm512_load_si512(tile.as_ptr().add((POSITIONS + position) * ROW_BYTES).cast());
-                let out = &mut output[position * epilogue.out_channels + channel..][..SUM_COLUMNS];
+                let out = &mut output[pixel * epilogue.out_channels + channel..][..SUM_COLUMNS];
                 epilogue.write_group((high, low), channel, out);
             }
         }
