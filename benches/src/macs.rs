@@ -14,7 +14,7 @@
 //! weights tool precomputes it per step (`film.table`); per step only the `[2 out, g]` part
 //! runs. [`Stage::Film`] counts that part; [`torch_only_per_step`] the rest. And the
 //! transposed convolutions run as the tool lowers them, ordinary convolutions of 3 taps and
-//! twice the output channels (a quarter of their weights zero): counted as such, their
+//! twice the output channels (a third of their weights zero): counted as such, their
 //! excess over PyTorch's count is [`engine_only_per_step`].
 
 use scdp_engine::ModelConfig;

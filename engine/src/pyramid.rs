@@ -222,7 +222,9 @@ impl<'a> FrameStore<'a> {
             // Room was made just above.
             let _ = batch.push((row, column));
         }
-        kernels::convolve_pixels(kernels, &shape, input, projection, &batch, store.map);
+        if !batch.is_empty() {
+            kernels::convolve_pixels(kernels, &shape, input, projection, &batch, store.map);
+        }
     }
 
     /// Computes every cell of `level` not computed yet: the map is then what a dense

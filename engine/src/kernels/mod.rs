@@ -675,16 +675,7 @@ pub fn convolve_pixels(
         } => {
             let values: &[i8] = &bytemuck::cast_slice(values)[..2 * shape.input_len()];
             let digits = DigitRows::from_planes(values, scale, nonnegative);
-            let parameters = (weights, weight_scales, bias);
-            kernels.conv_int8_pixels(
-                shape,
-                &digits,
-                parameters.0,
-                parameters.1,
-                parameters.2,
-                pixels,
-                output,
-            )
+            kernels.conv_int8_pixels(shape, &digits, weights, weight_scales, bias, pixels, output)
         }
     }
 }

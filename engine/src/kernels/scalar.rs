@@ -21,13 +21,21 @@ pub(crate) fn taps_inside(
     (0..shape.kernel_height)
         .flat_map(move |kernel_y| (0..shape.kernel_width).map(move |kernel_x| (kernel_y, kernel_x)))
         .filter_map(move |(kernel_y, kernel_x)| {
-            let in_y = (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height)?;
-            let in_x = (out_x * shape.stride + kernel_x).checked_sub(shape.padding_width)?;
-            (in_y < shape.in_height && in_x < shape.in_width).then_some((
-                in_y * shape.in_width + in_x,
-                kernel_y * shape.kernel_width + kernel_x,
-            ))
+            let pixel = tap_input(shape, (out_y, out_x), (kernel_y, kernel_x))?;
+            Some((pixel, kernel_y * shape.kernel_width + kernel_x))
         })
+}
+
+/// The input pixel (row-major index) that output pixel `(out_y, out_x)` reads at kernel tap
+/// `(kernel_y, kernel_x)`, `None` in the padding.
+pub(crate) fn tap_input(
+    shape: &ConvShape,
+    (out_y, out_x): (usize, usize),
+    (kernel_y, kernel_x): (usize, usize),
+) -> Option<usize> {
+    let in_y = (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height)?;
+    let in_x = (out_x * shape.stride + kernel_x).checked_sub(shape.padding_width)?;
+    (in_y < shape.in_height && in_x < shape.in_width).then_some(in_y * shape.in_width + in_x)
 }
 
 /// The f32 convolution of output pixels `columns` of row `out_y`: the whole reference

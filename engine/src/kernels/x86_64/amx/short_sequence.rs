@@ -26,6 +26,7 @@ use super::{
     BAND_BYTES, BandBuffer, BandInput, CHANNELS_PER_STEP, Epilogue, MAX_DIGIT_CHANNELS, Parameters,
     ROW_BYTES, ROWS, SUM_COLUMNS, TILE_CONFIG, TileBuffer,
 };
+use crate::kernels::scalar::tap_input;
 use crate::kernels::{Accumulate, ConvShape, INT8_CHANNEL_BLOCK, int8_quad_stride};
 
 /// Output positions an activation tile holds: its first rows are their high digits, the
@@ -63,73 +64,6 @@ pub(super) fn applies_to_cells(shape: &ConvShape, channels: usize) -> bool {
         && shape.kernel_height * shape.kernel_width * ROWS * channels <= BAND_BYTES
 }
 
-/// The output pixels one call computes, at most [`POSITIONS`]: where each reads the input
-/// at each tap, and where its outputs go.
-trait OutputPixels {
-    fn count(&self) -> usize;
-
-    /// The input pixel (row-major index) position `position` reads at kernel tap
-    /// `(kernel_y, kernel_x)`, `None` in the padding.
-    fn input_pixel(&self, shape: &ConvShape, position: usize, tap: (usize, usize))
-    -> Option<usize>;
-
-    /// The output pixel (row-major index) of position `position`.
-    fn output_pixel(&self, position: usize) -> usize;
-}
-
-/// The whole output of a short sequence.
-struct Sequence(usize);
-
-impl OutputPixels for Sequence {
-    fn count(&self) -> usize {
-        self.0
-    }
-
-    fn input_pixel(
-        &self,
-        shape: &ConvShape,
-        position: usize,
-        (_, tap): (usize, usize),
-    ) -> Option<usize> {
-        (position * shape.stride + tap)
-            .checked_sub(shape.padding_width)
-            .filter(|&pixel| pixel < shape.in_width)
-    }
-
-    fn output_pixel(&self, position: usize) -> usize {
-        position
-    }
-}
-
-/// Chosen pixels `(row, column)` of a 2-D output `out_width` pixels wide.
-struct Cells<'c> {
-    cells: &'c [(usize, usize)],
-    out_width: usize,
-}
-
-impl OutputPixels for Cells<'_> {
-    fn count(&self) -> usize {
-        self.cells.len()
-    }
-
-    fn input_pixel(
-        &self,
-        shape: &ConvShape,
-        position: usize,
-        (kernel_y, kernel_x): (usize, usize),
-    ) -> Option<usize> {
-        let (row, column) = self.cells[position];
-        let y = (row * shape.stride + kernel_y).checked_sub(shape.padding_height)?;
-        let x = (column * shape.stride + kernel_x).checked_sub(shape.padding_width)?;
-        (y < shape.in_height && x < shape.in_width).then_some(y * shape.in_width + x)
-    }
-
-    fn output_pixel(&self, position: usize) -> usize {
-        let (row, column) = self.cells[position];
-        row * self.out_width + column
-    }
-}
-
 /// The convolution, 64 output channels a pass: each tap's activation rows, laid out by
 /// [`fill_taps`], times the block's weights read in place, the four sums across every tap
 /// and input channel; a pass's sums are written out while the tiles compute the next.
@@ -146,9 +80,11 @@ pub(super) unsafe fn conv<I: BandInput>(
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
-    let pixels = Sequence(shape.out_width());
+    // The sequence's positions, as pixels of its one output row.
+    let pixels: [(usize, usize); POSITIONS] = core::array::from_fn(|column| (0, column));
+    let pixels = &pixels[..shape.out_width()];
     // SAFETY: the caller's promises.
-    unsafe { conv_pixels(shape, input, parameters, &pixels, output, accumulate) }
+    unsafe { conv_pixels(shape, input, parameters, pixels, output, accumulate) }
 }
 
 /// Output pixels `cells` of the convolution (overwritten), [`POSITIONS`] at a time; the
@@ -166,17 +102,13 @@ pub(super) unsafe fn conv_cells<I: BandInput>(
     output: &mut [f32],
 ) {
     for group in cells.chunks(POSITIONS) {
-        let pixels = Cells {
-            cells: group,
-            out_width: shape.out_width(),
-        };
         // SAFETY: the caller's promises.
         unsafe {
             conv_pixels(
                 shape,
                 input,
                 parameters,
-                &pixels,
+                group,
                 output,
                 Accumulate::Overwrite,
             )
@@ -184,18 +116,18 @@ pub(super) unsafe fn conv_cells<I: BandInput>(
     }
 }
 
-/// The output pixels `pixels` of the convolution: [`fill_taps`], then a pass per 64-channel
-/// block of the weights.
+/// The output pixels `pixels` (`(row, column)`) of the convolution: [`fill_taps`], then a
+/// pass per 64-channel block of the weights.
 ///
 /// # Safety
-/// As for [`conv`]; [`applies_to_cells`] holds; `pixels` has at most [`POSITIONS`]
-/// positions, each reading inside the input and writing inside the output.
+/// As for [`conv`]; [`applies_to_cells`] holds; `pixels` has at most [`POSITIONS`] pixels,
+/// each inside the output.
 #[inline(always)]
-unsafe fn conv_pixels<I: BandInput, P: OutputPixels>(
+unsafe fn conv_pixels<I: BandInput>(
     shape: &ConvShape,
     input: &I,
     (weight, weight_scales, bias): Parameters<'_>,
-    pixels: &P,
+    pixels: &[(usize, usize)],
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
@@ -245,13 +177,12 @@ unsafe fn conv_pixels<I: BandInput, P: OutputPixels>(
 /// position `p` reads at that tap, zero where that is padding or past the positions.
 ///
 /// # Safety
-/// AVX-512F/BW; [`applies_to_cells`] holds; `pixels` has at most [`POSITIONS`] positions
-/// reading inside the input.
+/// AVX-512F/BW; [`applies_to_cells`] holds; `pixels` has at most [`POSITIONS`] pixels.
 #[inline(always)]
-unsafe fn fill_taps<I: BandInput, P: OutputPixels>(
+unsafe fn fill_taps<I: BandInput>(
     shape: &ConvShape,
     input: &I,
-    pixels: &P,
+    pixels: &[(usize, usize)],
     buffer: &mut BandBuffer,
 ) {
     let pitch = shape.in_channels;
@@ -264,9 +195,9 @@ unsafe fn fill_taps<I: BandInput, P: OutputPixels>(
                 // `pitch` is a multiple of 64, so each row is 64-byte aligned.
                 let high = unsafe { base.add((tap * ROWS + position) * pitch) };
                 let low = unsafe { high.add(POSITIONS * pitch) };
-                let pixel = (position < pixels.count())
-                    .then(|| pixels.input_pixel(shape, position, (kernel_y, kernel_x)))
-                    .flatten();
+                let pixel = pixels
+                    .get(position)
+                    .and_then(|&pixel| tap_input(shape, pixel, (kernel_y, kernel_x)));
                 // SAFETY: the pixel is inside the input; each row is `pitch` writable bytes.
                 unsafe {
                     match pixel {
@@ -375,15 +306,15 @@ unsafe fn multiply_step<I: BandInput>(
 /// AVX-512F; the pass's channels are inside the output and the parameters; `sums` were
 /// written by [`super::store_sums`].
 #[inline(always)]
-unsafe fn write_pass<P: OutputPixels>(
+unsafe fn write_pass(
     epilogue: &Epilogue<'_>,
     sums: &PassSums,
-    pixels: &P,
+    pixels: &[(usize, usize)],
     channel: usize,
     output: &mut [f32],
 ) {
-    for position in 0..pixels.count() {
-        let pixel = pixels.output_pixel(position);
+    for (position, &(row, column)) in pixels.iter().enumerate() {
+        let pixel = row * epilogue.out_width + column;
         for (group, tile) in sums.iter().enumerate() {
             let channel = channel + group * SUM_COLUMNS;
             // SAFETY: AVX-512F; both rows are 64 aligned bytes of the stored tile.
