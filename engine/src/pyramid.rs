@@ -367,7 +367,7 @@ pub fn encode(
         &mut scratch.quantized,
     );
     let (height, width) = config.pyramid_size(0);
-    ops::max_pool_3x3_stride_2(
+    kernels.max_pool_3x3_stride_2(
         &scratch.rest[..stem_height * stem_width * stem_channels],
         (stem_height, stem_width, stem_channels),
         &mut scratch.first[..height * width * stem_channels],

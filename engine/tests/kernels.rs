@@ -1487,6 +1487,40 @@ fn elementwise_operations_are_bit_identical_on_every_backend() {
     }
 }
 
+/// The stem's 3x3 / 2 max pool is compiled for each backend's vectors too: the same bits as
+/// the scalar reference on the pooled stem shapes and odd ones (a border pixel's window is
+/// cut by the padding), with negative values and a NaN.
+#[test]
+fn max_pool_is_bit_identical_on_every_backend() {
+    use scdp_engine::config::conv_output;
+    let mut rng = Lcg(41);
+    // (height, width, channels): the panda and metaworld stems, then odd sizes.
+    let shapes = [
+        (120, 160, 64),
+        (64, 64, 64),
+        (7, 5, 24),
+        (2, 3, 16),
+        (1, 1, 5),
+    ];
+    for &(height, width, channels) in &shapes {
+        let mut input: Vec<f32> = rng
+            .vec(height * width * channels)
+            .iter()
+            .map(|x| x * 3.0 - 1.0)
+            .collect();
+        input[channels / 2] = f32::NAN;
+        let pooled = conv_output(height, 3, 2, 1) * conv_output(width, 3, 2, 1) * channels;
+        let mut expected = vec![0.0; pooled];
+        Scalar.max_pool_3x3_stride_2(&input, (height, width, channels), &mut expected);
+        for (name, kernels) in &backends() {
+            let mut found = vec![0.0; pooled];
+            kernels.max_pool_3x3_stride_2(&input, (height, width, channels), &mut found);
+            let what = format!("{name} max pool {height}x{width}x{channels}");
+            assert_same_bits(&found, &expected, &what);
+        }
+    }
+}
+
 /// `conv_pixel` and `conv_int8_pixel` must give, bit for bit, what the same backend's dense
 /// kernel writes at that pixel (the pyramid evaluates large projections only at the cells
 /// the anchors sample). Every pixel of random 2-D shapes, borders and tiles included, with

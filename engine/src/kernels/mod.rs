@@ -475,6 +475,16 @@ pub trait Kernels: Sync {
     fn add_activate(&self, target: &mut [f32], source: &[f32], activation: Activation) {
         ops::add_activate(target, source, activation)
     }
+
+    /// [`ops::max_pool_3x3_stride_2`]: `[height, width, channels]` -> the pooled map.
+    fn max_pool_3x3_stride_2(
+        &self,
+        input: &[f32],
+        dims: (usize, usize, usize),
+        output: &mut [f32],
+    ) {
+        ops::max_pool_3x3_stride_2(input, dims, output)
+    }
 }
 
 /// Input channels up to which the exact sum of one kernel tap fits i32:

@@ -257,6 +257,7 @@ fn moments_per_group(
 }
 
 /// 3x3 max pool, stride 2, padding 1 (padding never wins) over `[H, W, C]`.
+#[inline(always)]
 pub fn max_pool_3x3_stride_2(
     input: &[f32],
     (height, width, channels): (usize, usize, usize),

@@ -1200,4 +1200,13 @@ impl Kernels for Amx {
     fn add_activate(&self, target: &mut [f32], source: &[f32], activation: Activation) {
         self.avx512.add_activate(target, source, activation)
     }
+
+    fn max_pool_3x3_stride_2(
+        &self,
+        input: &[f32],
+        dims: (usize, usize, usize),
+        output: &mut [f32],
+    ) {
+        self.avx512.max_pool_3x3_stride_2(input, dims, output)
+    }
 }

@@ -43,6 +43,16 @@ macro_rules! backend {
             pub(crate) fn add_activate(target: &mut [f32], source: &[f32], activation: Activation) {
                 ops::add_activate(target, source, activation)
             }
+
+            /// [`ops::max_pool_3x3_stride_2`] on this backend's vectors.
+            #[target_feature(enable = $features)]
+            pub(crate) fn max_pool_3x3_stride_2(
+                input: &[f32],
+                dims: (usize, usize, usize),
+                output: &mut [f32],
+            ) {
+                ops::max_pool_3x3_stride_2(input, dims, output)
+            }
         }
     };
 }

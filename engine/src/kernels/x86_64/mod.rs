@@ -101,6 +101,16 @@ macro_rules! shared_kernels {
             // SAFETY: `self` exists only on a CPU with the backend's features.
             unsafe { elementwise::$backend::add_activate(target, source, activation) }
         }
+
+        fn max_pool_3x3_stride_2(
+            &self,
+            input: &[f32],
+            dims: (usize, usize, usize),
+            output: &mut [f32],
+        ) {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { elementwise::$backend::max_pool_3x3_stride_2(input, dims, output) }
+        }
     };
 }
 
