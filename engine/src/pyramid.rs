@@ -269,15 +269,18 @@ fn projection_shape(config: &ModelConfig, level: usize) -> ConvShape {
     )
 }
 
-/// The stem's convolution, norm and ReLU: `image` (RGB bytes) -> `output`.
+/// The stem's convolution, norm, ReLU and max pool: `image` (RGB bytes) -> `pooled`, the
+/// first pyramid level's input. `map` takes the convolution's output at the stem's size.
 ///
 /// With int8 weights and no ImageNet normalization the image bytes are the input codes
 /// exactly (scale `1 / 255`): the stem runs as a 1x1 int8 convolution over its patches
 /// ([`frame::PATCH_CHANNELS`] bytes a pixel), a band of output rows at a time in the
 /// quantization buffer, so its 7x7 kernel over three channels reads 49 quads in one run
 /// instead of one quad a tap. It gives exactly what the 7x7 int8 convolution gives on the
-/// same codes. Otherwise the image is normalized to f32 in `image_buffer` and convolved as
-/// any layer.
+/// same codes. There the GroupNorm's moments are taken band by band, while each band is in
+/// the caches, and the normalization is applied inside the max pool, so the full-size map
+/// (4.9 MB for panda) is written once and read once; the bits are those of GroupNorm then
+/// pooling. Otherwise the image is normalized to f32 in `pooled` and convolved as any layer.
 ///
 /// # Panics
 /// If a buffer is shorter than the arena plan makes it (the policy's never are).
@@ -286,7 +289,7 @@ pub fn stem(
     config: &ModelConfig,
     layer: &ConvNorm<'_>,
     image: &[u8],
-    (image_buffer, output): (&mut [f32], &mut [f32]),
+    (pooled, map): (&mut [f32], &mut [f32]),
     quantized: &mut QuantizeScratch<'_>,
 ) {
     let image_shape = (config.image_height as usize, config.image_width as usize, 3);
@@ -298,25 +301,28 @@ pub fn stem(
         STEM_STRIDE,
         STEM_PADDING,
     );
+    let (out_height, out_width) = (shape.out_height(), shape.out_width());
+    let map_shape = (out_height, out_width, channels);
+    let (pooled_height, pooled_width) = config.pyramid_size(0);
+    let pooled_len = pooled_height * pooled_width * channels;
     let (values, scales) = match layer.conv.weight {
         Weight::Int8 { values, scales } if !config.imagenet_norm => (values, scales),
         _ => {
-            frame::normalize(config, image, image_buffer);
+            frame::normalize(config, image, pooled);
             let activation = Activation::Relu;
-            return conv_norm(
-                kernels,
-                layer,
-                &shape,
-                image_buffer,
-                output,
-                activation,
-                quantized,
-            );
+            conv_norm(kernels, layer, &shape, pooled, map, activation, quantized);
+            let map = &map[..shape.output_len()];
+            kernels.max_pool_3x3_stride_2(map, map_shape, &mut pooled[..pooled_len]);
+            return;
         }
     };
+    // The moments of a GroupNorm over at most `MOMENT_CHANNELS` channels (the stem's 64).
+    const MOMENT_CHANNELS: usize = 256;
+    let mut sums = [0.0f64; MOMENT_CHANNELS];
+    let mut squares = [0.0f64; MOMENT_CHANNELS];
+    let norm = layer.norm.as_ref().filter(|_| channels <= MOMENT_CHANNELS);
     let (high_image, low_image) =
-        frame::pad_digits(config, image, bytemuck::cast_slice_mut(image_buffer));
-    let (out_height, out_width) = (shape.out_height(), shape.out_width());
+        frame::pad_digits(config, image, bytemuck::cast_slice_mut(pooled));
     // The plan makes room for at least one row of patches.
     let band_rows =
         (quantized.values.len() / (2 * out_width * PATCH_CHANNELS)).clamp(1, out_height);
@@ -333,17 +339,42 @@ pub fn stem(
             scale: 1.0 / 255.0,
             nonnegative: true,
         };
+        let output = &mut map[first_row * out_width * channels..][..band.output_len()];
         kernels.conv_int8(
             &band,
             &digits,
             values,
             scales,
             layer.conv.bias,
-            &mut output[first_row * out_width * channels..][..band.output_len()],
+            output,
             Accumulate::Overwrite,
         );
+        if norm.is_some() {
+            let moments = (&mut sums[..channels], &mut squares[..channels]);
+            kernels.add_channel_moments(output, channels, moments);
+        }
     }
-    normalize(kernels, layer, &shape, output, Activation::Relu);
+    let map = &mut map[..shape.output_len()];
+    let pooled = &mut pooled[..pooled_len];
+    match norm {
+        Some(norm) => {
+            let mut scale = [0.0f32; MOMENT_CHANNELS];
+            let mut shift = [0.0f32; MOMENT_CHANNELS];
+            ops::group_scale_shift(
+                (&sums[..channels], &squares[..channels]),
+                out_height * out_width,
+                ModelConfig::backbone_groups(channels),
+                (norm.gamma, norm.beta),
+                (&mut scale[..channels], &mut shift[..channels]),
+            );
+            let affine = (&scale[..channels], &shift[..channels]);
+            kernels.normalize_max_pool(map, map_shape, affine, Activation::Relu, pooled);
+        }
+        None => {
+            normalize(kernels, layer, &shape, map, Activation::Relu);
+            kernels.max_pool_3x3_stride_2(map, map_shape, pooled);
+        }
+    }
 }
 
 /// Encodes `image` (RGB bytes of the config's size) into `frame`: the five projected maps,
@@ -357,7 +388,6 @@ pub fn encode(
     frame: &mut FrameStore<'_>,
 ) {
     let stem_channels = config.stage_channels(0);
-    let (stem_height, stem_width) = config.stem_size();
     stem(
         kernels,
         config,
@@ -367,11 +397,6 @@ pub fn encode(
         &mut scratch.quantized,
     );
     let (height, width) = config.pyramid_size(0);
-    kernels.max_pool_3x3_stride_2(
-        &scratch.rest[..stem_height * stem_width * stem_channels],
-        (stem_height, stem_width, stem_channels),
-        &mut scratch.first[..height * width * stem_channels],
-    );
 
     let (second, rest) = scratch.rest.split_at_mut(scratch.activation_len);
     let (third, fourth) = rest.split_at_mut(scratch.activation_len);

@@ -2,7 +2,9 @@
 //! time (`pyramid::stem`). It must give, bit for bit, what the 7x7 stride-2 int8
 //! convolution of the contract gives on the same input: the image bytes as codes with the
 //! scale 1 / 255, zero padding, the weights as the tool stores them. The reference here is
-//! that convolution on the scalar backend, then the backend's own GroupNorm + ReLU.
+//! that convolution on the scalar backend, then the backend's own GroupNorm + ReLU and the
+//! max pool (the stem takes the norm's moments band by band and normalizes inside the pool;
+//! the bits must not change).
 
 use scdp_engine::config::ModelConfig;
 use scdp_engine::frame::{PATCH_CHANNELS, STEM_KERNEL, STEM_PADDING, STEM_STRIDE};
@@ -120,32 +122,40 @@ fn int8_stem_over_patches_equals_the_7x7_convolution() {
             (&gamma, &beta),
             Activation::Relu,
         );
+        let (pooled_height, pooled_width) = config.pyramid_size(0);
+        let mut expected_pooled = vec![0.0f32; pooled_height * pooled_width * channels];
+        Scalar.max_pool_3x3_stride_2(
+            &expected,
+            (shape.out_height(), out_width, channels),
+            &mut expected_pooled,
+        );
         // Room for three output rows of patches: bands of 3, 3, ..., and a shorter last.
         for band_rows in [1, 3, shape.out_height()] {
             let mut quantized = vec![0i8; band_rows * 2 * out_width * PATCH_CHANNELS + 5];
-            let mut image_buffer = vec![0.0f32; 4 * height * width];
-            let mut output = vec![f32::NAN; shape.output_len()];
+            // The pooled map's buffer first holds the padded image's digit planes.
+            let mut pooled = vec![f32::NAN; (4 * height * width).max(expected_pooled.len())];
+            let mut map = vec![f32::NAN; shape.output_len()];
             pyramid::stem(
                 kernels,
                 &config,
                 &layer,
                 &image,
-                (&mut image_buffer, &mut output),
+                (&mut pooled, &mut map),
                 &mut QuantizeScratch {
                     values: &mut quantized,
                 },
             );
-            let differing = output
+            let differing = pooled[..expected_pooled.len()]
                 .iter()
-                .zip(&expected)
+                .zip(&expected_pooled)
                 .filter(|(a, b)| a.to_bits() != b.to_bits())
                 .count();
             assert_eq!(
                 differing,
                 0,
-                "{}: {differing} of {} stem outputs differ from the 7x7 convolution (bands of {band_rows} rows)",
+                "{}: {differing} of {} pooled stem outputs differ from the 7x7 convolution's (bands of {band_rows} rows)",
                 kernels.name(),
-                output.len()
+                expected_pooled.len()
             );
         }
     }

@@ -476,6 +476,29 @@ pub trait Kernels: Sync {
         ops::add_activate(target, source, activation)
     }
 
+    /// [`ops::add_channel_moments`]: adds each channel's sum and sum of squares over
+    /// `data`'s pixels to `moments`.
+    fn add_channel_moments(
+        &self,
+        data: &[f32],
+        channels: usize,
+        moments: (&mut [f64], &mut [f64]),
+    ) {
+        ops::add_channel_moments(data, channels, moments)
+    }
+
+    /// [`ops::normalize_max_pool`]: the max pool of `activation(x * scale + shift)`.
+    fn normalize_max_pool(
+        &self,
+        input: &[f32],
+        dims: (usize, usize, usize),
+        affine: (&[f32], &[f32]),
+        activation: Activation,
+        output: &mut [f32],
+    ) {
+        ops::normalize_max_pool(input, dims, affine, activation, output)
+    }
+
     /// [`ops::max_pool_3x3_stride_2`]: `[height, width, channels]` -> the pooled map.
     fn max_pool_3x3_stride_2(
         &self,

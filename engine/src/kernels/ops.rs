@@ -256,6 +256,133 @@ fn moments_per_group(
     }
 }
 
+/// Adds each channel's sum and sum of squares over the pixels of `data` (`[positions,
+/// channels]`) to `sums[c]` and `squares[c]`, in f64, pixels
+/// in memory order: [`group_norm`]'s per-channel moments, so a map's bands passed in order
+/// (from zero sums) make the same additions as the whole map, and [`group_scale_shift`]
+/// then gives [`group_norm`]'s bits. Lets a map be measured band by band while each band
+/// is still in the caches.
+#[inline(always)]
+pub fn add_channel_moments(
+    data: &[f32],
+    channels: usize,
+    (sums, squares): (&mut [f64], &mut [f64]),
+) {
+    let (sums, squares) = (&mut sums[..channels], &mut squares[..channels]);
+    let whole = channels - channels % MOMENT_LANES;
+    for block in (0..whole).step_by(MOMENT_LANES) {
+        let mut block_sums: [f64; MOMENT_LANES] = sums[block..][..MOMENT_LANES]
+            .try_into()
+            .expect("a block of lanes");
+        let mut block_squares: [f64; MOMENT_LANES] = squares[block..][..MOMENT_LANES]
+            .try_into()
+            .expect("a block of lanes");
+        for pixel in data.chunks_exact(channels) {
+            let values = &pixel[block..][..MOMENT_LANES];
+            for ((sum, square), &x) in block_sums
+                .iter_mut()
+                .zip(block_squares.iter_mut())
+                .zip(values)
+            {
+                let x = x as f64;
+                *sum += x;
+                *square += x * x;
+            }
+        }
+        sums[block..][..MOMENT_LANES].copy_from_slice(&block_sums);
+        squares[block..][..MOMENT_LANES].copy_from_slice(&block_squares);
+    }
+    if whole < channels {
+        for pixel in data.chunks_exact(channels) {
+            for ((sum, square), &x) in sums[whole..]
+                .iter_mut()
+                .zip(squares[whole..].iter_mut())
+                .zip(&pixel[whole..])
+            {
+                let x = x as f64;
+                *sum += x;
+                *square += x * x;
+            }
+        }
+    }
+}
+
+/// The per-channel `scale` and `shift` that [`group_norm`] applies (`x * scale + shift`),
+/// from the channels' moments over `positions` pixels ([`add_channel_moments`]): the same
+/// arithmetic in the same order, so the same bits when the channels fit one of its chunks
+/// (at most 256, as the stem's 64 do).
+pub fn group_scale_shift(
+    (sums, squares): (&[f64], &[f64]),
+    positions: usize,
+    groups: usize,
+    (gamma, beta): (&[f32], &[f32]),
+    (scale, shift): (&mut [f32], &mut [f32]),
+) {
+    let channels = gamma.len();
+    let group_size = channels / groups;
+    let count = (positions * group_size) as f64;
+    let per_group = sums[..channels]
+        .chunks_exact(group_size)
+        .zip(squares[..channels].chunks_exact(group_size))
+        .zip(
+            gamma
+                .chunks_exact(group_size)
+                .zip(beta.chunks_exact(group_size)),
+        )
+        .zip(
+            scale[..channels]
+                .chunks_exact_mut(group_size)
+                .zip(shift[..channels].chunks_exact_mut(group_size)),
+        );
+    for (((channel_sums, channel_squares), (gamma, beta)), (scale, shift)) in per_group {
+        let mut sum = 0.0f64;
+        channel_sums
+            .iter()
+            .for_each(|&channel_sum| sum += channel_sum);
+        let mut square = 0.0f64;
+        channel_squares
+            .iter()
+            .for_each(|&channel_square| square += channel_square);
+        let mean = sum / count;
+        let variance = (square / count - mean * mean).max(0.0);
+        let inverse_std = 1.0 / sqrt(variance + NORM_EPSILON);
+        for (((scale, shift), &gamma), &beta) in
+            scale.iter_mut().zip(shift.iter_mut()).zip(gamma).zip(beta)
+        {
+            *scale = (gamma as f64 * inverse_std) as f32;
+            *shift = (beta as f64 - mean * gamma as f64 * inverse_std) as f32;
+        }
+    }
+}
+
+/// [`max_pool_3x3_stride_2`] of `activation(x * scale + shift)` (per channel): normalizing
+/// then pooling, the same bits, without storing the normalized map (the panda stem's is 4.9
+/// MB, so each pass over it goes to L3).
+#[inline(always)]
+pub fn normalize_max_pool(
+    input: &[f32],
+    (height, width, channels): (usize, usize, usize),
+    (scale, shift): (&[f32], &[f32]),
+    activation: Activation,
+    output: &mut [f32],
+) {
+    let out_width = crate::config::conv_output(width, 3, 2, 1);
+    let (scale, shift) = (&scale[..channels], &shift[..channels]);
+    for (position, out) in output.chunks_exact_mut(channels).enumerate() {
+        let out_y = position / out_width;
+        let out_x = position % out_width;
+        out.fill(f32::NEG_INFINITY);
+        for in_y in (2 * out_y).saturating_sub(1)..(2 * out_y + 2).min(height) {
+            for in_x in (2 * out_x).saturating_sub(1)..(2 * out_x + 2).min(width) {
+                let pixel = &input[(in_y * width + in_x) * channels..][..channels];
+                for (((o, &x), &a), &b) in out.iter_mut().zip(pixel).zip(scale).zip(shift) {
+                    *o = o.max(activate(x * a + b, activation));
+                }
+            }
+        }
+    }
+}
+
 /// 3x3 max pool, stride 2, padding 1 (padding never wins) over `[H, W, C]`.
 #[inline(always)]
 pub fn max_pool_3x3_stride_2(

@@ -1201,6 +1201,27 @@ impl Kernels for Amx {
         self.avx512.add_activate(target, source, activation)
     }
 
+    fn add_channel_moments(
+        &self,
+        data: &[f32],
+        channels: usize,
+        moments: (&mut [f64], &mut [f64]),
+    ) {
+        self.avx512.add_channel_moments(data, channels, moments)
+    }
+
+    fn normalize_max_pool(
+        &self,
+        input: &[f32],
+        dims: (usize, usize, usize),
+        affine: (&[f32], &[f32]),
+        activation: Activation,
+        output: &mut [f32],
+    ) {
+        self.avx512
+            .normalize_max_pool(input, dims, affine, activation, output)
+    }
+
     fn max_pool_3x3_stride_2(
         &self,
         input: &[f32],

@@ -44,6 +44,28 @@ macro_rules! backend {
                 ops::add_activate(target, source, activation)
             }
 
+            /// [`ops::add_channel_moments`] on this backend's vectors.
+            #[target_feature(enable = $features)]
+            pub(crate) fn add_channel_moments(
+                data: &[f32],
+                channels: usize,
+                moments: (&mut [f64], &mut [f64]),
+            ) {
+                ops::add_channel_moments(data, channels, moments)
+            }
+
+            /// [`ops::normalize_max_pool`] on this backend's vectors.
+            #[target_feature(enable = $features)]
+            pub(crate) fn normalize_max_pool(
+                input: &[f32],
+                dims: (usize, usize, usize),
+                affine: (&[f32], &[f32]),
+                activation: Activation,
+                output: &mut [f32],
+            ) {
+                ops::normalize_max_pool(input, dims, affine, activation, output)
+            }
+
             /// [`ops::max_pool_3x3_stride_2`] on this backend's vectors.
             #[target_feature(enable = $features)]
             pub(crate) fn max_pool_3x3_stride_2(

@@ -102,6 +102,30 @@ macro_rules! shared_kernels {
             unsafe { elementwise::$backend::add_activate(target, source, activation) }
         }
 
+        fn add_channel_moments(
+            &self,
+            data: &[f32],
+            channels: usize,
+            moments: (&mut [f64], &mut [f64]),
+        ) {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { elementwise::$backend::add_channel_moments(data, channels, moments) }
+        }
+
+        fn normalize_max_pool(
+            &self,
+            input: &[f32],
+            dims: (usize, usize, usize),
+            affine: (&[f32], &[f32]),
+            activation: Activation,
+            output: &mut [f32],
+        ) {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe {
+                elementwise::$backend::normalize_max_pool(input, dims, affine, activation, output)
+            }
+        }
+
         fn max_pool_3x3_stride_2(
             &self,
             input: &[f32],
