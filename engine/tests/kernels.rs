@@ -1521,6 +1521,70 @@ fn max_pool_is_bit_identical_on_every_backend() {
     }
 }
 
+/// The stem's GroupNorm taken apart: per-channel moments added band by band, then the
+/// normalization applied inside the max pool. On every backend, over bands of a few rows,
+/// it must give the scalar reference's GroupNorm followed by its max pool, bit for bit
+/// (the moments are the same f64 additions in the same order), on the stem shapes and odd
+/// ones, with negative values.
+#[test]
+fn banded_moments_and_normalizing_pool_equal_group_norm_then_pool() {
+    use scdp_engine::config::conv_output;
+    use scdp_engine::kernels::ops::{self, Activation};
+    let mut rng = Lcg(43);
+    // (height, width, channels, groups, band rows)
+    let shapes = [
+        (120, 160, 64, 4, 9),
+        (64, 64, 64, 4, 7),
+        (7, 5, 24, 3, 2),
+        (3, 2, 40, 5, 1),
+        (1, 1, 8, 2, 1),
+    ];
+    for &(height, width, channels, groups, band_rows) in &shapes {
+        let data: Vec<f32> = rng
+            .vec(height * width * channels)
+            .iter()
+            .map(|x| x * 3.0 + 0.25)
+            .collect();
+        let gamma = rng.vec(channels);
+        let beta = rng.vec(channels);
+        let pooled = conv_output(height, 3, 2, 1) * conv_output(width, 3, 2, 1) * channels;
+        let mut normalized = data.clone();
+        Scalar.group_norm(
+            &mut normalized,
+            channels,
+            groups,
+            (&gamma, &beta),
+            Activation::Relu,
+        );
+        let mut expected = vec![0.0; pooled];
+        Scalar.max_pool_3x3_stride_2(&normalized, (height, width, channels), &mut expected);
+        for (name, kernels) in &backends() {
+            let (mut sums, mut squares) = (vec![0.0f64; channels], vec![0.0f64; channels]);
+            for band in data.chunks(band_rows * width * channels) {
+                kernels.add_channel_moments(band, channels, (&mut sums, &mut squares));
+            }
+            let (mut scale, mut shift) = (vec![0.0f32; channels], vec![0.0f32; channels]);
+            ops::group_scale_shift(
+                (&sums, &squares),
+                height * width,
+                groups,
+                (&gamma, &beta),
+                (&mut scale, &mut shift),
+            );
+            let mut found = vec![0.0; pooled];
+            kernels.normalize_max_pool(
+                &data,
+                (height, width, channels),
+                (&scale, &shift),
+                Activation::Relu,
+                &mut found,
+            );
+            let what = format!("{name} banded group norm + pool {height}x{width}x{channels}");
+            assert_same_bits(&found, &expected, &what);
+        }
+    }
+}
+
 /// `conv_pixel` and `conv_int8_pixel` must give, bit for bit, what the same backend's dense
 /// kernel writes at that pixel (the pyramid evaluates large projections only at the cells
 /// the anchors sample). Every pixel of random 2-D shapes, borders and tiles included, with
