@@ -117,9 +117,7 @@ pub fn group_norm(
             .iter_mut()
             .zip(&mut inverse_std[..chunk_groups])
         {
-            *mean /= count;
-            let variance = (*squares / count - *mean * *mean).max(0.0);
-            *squares = 1.0 / sqrt(variance + NORM_EPSILON);
+            (*mean, *squares) = mean_inverse_std((*mean, *squares), count);
         }
         let mut scale = [0.0f32; CHANNELS];
         let mut shift = [0.0f32; CHANNELS];
@@ -132,13 +130,8 @@ pub fn group_norm(
                 .zip(gamma[channels_of.clone()].chunks(group_size))
                 .zip(beta[channels_of].chunks(group_size));
             for (group, (((scale, shift), gamma), beta)) in (start / group_size..).zip(per_group) {
-                let (mean, inverse_std) = (mean[group], inverse_std[group]);
-                for (((scale, shift), &gamma), &beta) in
-                    scale.iter_mut().zip(shift.iter_mut()).zip(gamma).zip(beta)
-                {
-                    *scale = (gamma as f64 * inverse_std) as f32;
-                    *shift = (beta as f64 - mean * gamma as f64 * inverse_std) as f32;
-                }
+                let moments = (mean[group], inverse_std[group]);
+                channel_affine(moments, (gamma, beta), (scale, shift));
             }
             for pixel in data.chunks_exact_mut(channels) {
                 let values = &mut pixel[first + start..first + start + len];
@@ -205,38 +198,13 @@ fn moments_per_group(
         let channel_squares = &mut channel_squares[..len];
         channel_sums.fill(0.0);
         channel_squares.fill(0.0);
-        // Blocks of `MOMENT_LANES` channels over all pixels, their sums in registers (a
-        // whole chunk's, kept on the stack, were loaded and stored again at every pixel,
-        // most of GroupNorm's time), then what is left of the chunk.
-        let whole = len - len % MOMENT_LANES;
-        for block in (0..whole).step_by(MOMENT_LANES) {
-            let mut sums = [0.0f64; MOMENT_LANES];
-            let mut squares = [0.0f64; MOMENT_LANES];
-            for pixel in data.chunks_exact(channels) {
-                let values = &pixel[start + block..][..MOMENT_LANES];
-                for ((sum, square), &x) in sums.iter_mut().zip(squares.iter_mut()).zip(values) {
-                    let x = x as f64;
-                    *sum += x;
-                    *square += x * x;
-                }
-            }
-            channel_sums[block..][..MOMENT_LANES].copy_from_slice(&sums);
-            channel_squares[block..][..MOMENT_LANES].copy_from_slice(&squares);
-        }
-        if whole < len {
-            for pixel in data.chunks_exact(channels) {
-                let values = &pixel[start + whole..start + len];
-                for ((sum, square), &x) in channel_sums[whole..]
-                    .iter_mut()
-                    .zip(channel_squares[whole..].iter_mut())
-                    .zip(values)
-                {
-                    let x = x as f64;
-                    *sum += x;
-                    *square += x * x;
-                }
-            }
-        }
+        let span = start..start + len;
+        add_span_moments(
+            data,
+            channels,
+            span,
+            (&mut *channel_sums, &mut *channel_squares),
+        );
         let per_group = channel_sums
             .chunks(group_size)
             .zip(channel_squares.chunks(group_size))
@@ -257,19 +225,31 @@ fn moments_per_group(
 }
 
 /// Adds each channel's sum and sum of squares over the pixels of `data` (`[positions,
-/// channels]`) to `sums[c]` and `squares[c]`, in f64, pixels
-/// in memory order: [`group_norm`]'s per-channel moments, so a map's bands passed in order
-/// (from zero sums) make the same additions as the whole map, and [`group_scale_shift`]
-/// then gives [`group_norm`]'s bits. Lets a map be measured band by band while each band
-/// is still in the caches.
+/// channels]`) to `sums[c]` and `squares[c]`, in f64, pixels in memory order:
+/// [`group_norm`]'s per-channel moments, so a map's bands passed in order (from zero sums)
+/// make the same additions as the whole map, and [`group_scale_shift`] then gives
+/// [`group_norm`]'s bits. Lets a map be measured band by band while each band is still in
+/// the caches.
 #[inline(always)]
-pub fn add_channel_moments(
+pub fn add_channel_moments(data: &[f32], channels: usize, moments: (&mut [f64], &mut [f64])) {
+    add_span_moments(data, channels, 0..channels, moments);
+}
+
+/// Adds, for each channel `span.start + c` of `data`'s pixels (`channels` values each), the
+/// sum of its values and of their squares to `sums[c]` and `squares[c]`, in f64, pixels in
+/// memory order. Blocks of [`MOMENT_LANES`] channels walk all pixels with their sums in
+/// registers (a whole chunk's, kept on the stack, were loaded and stored again at every
+/// pixel, most of GroupNorm's time), then what is left of the span.
+#[inline(always)]
+fn add_span_moments(
     data: &[f32],
     channels: usize,
+    span: core::ops::Range<usize>,
     (sums, squares): (&mut [f64], &mut [f64]),
 ) {
-    let (sums, squares) = (&mut sums[..channels], &mut squares[..channels]);
-    let whole = channels - channels % MOMENT_LANES;
+    let len = span.len();
+    let (sums, squares) = (&mut sums[..len], &mut squares[..len]);
+    let whole = len - len % MOMENT_LANES;
     for block in (0..whole).step_by(MOMENT_LANES) {
         let mut block_sums: [f64; MOMENT_LANES] = sums[block..][..MOMENT_LANES]
             .try_into()
@@ -278,7 +258,7 @@ pub fn add_channel_moments(
             .try_into()
             .expect("a block of lanes");
         for pixel in data.chunks_exact(channels) {
-            let values = &pixel[block..][..MOMENT_LANES];
+            let values = &pixel[span.start + block..][..MOMENT_LANES];
             for ((sum, square), &x) in block_sums
                 .iter_mut()
                 .zip(block_squares.iter_mut())
@@ -292,12 +272,12 @@ pub fn add_channel_moments(
         sums[block..][..MOMENT_LANES].copy_from_slice(&block_sums);
         squares[block..][..MOMENT_LANES].copy_from_slice(&block_squares);
     }
-    if whole < channels {
+    if whole < len {
         for pixel in data.chunks_exact(channels) {
             for ((sum, square), &x) in sums[whole..]
                 .iter_mut()
                 .zip(squares[whole..].iter_mut())
-                .zip(&pixel[whole..])
+                .zip(&pixel[span.start + whole..span.end])
             {
                 let x = x as f64;
                 *sum += x;
@@ -343,15 +323,33 @@ pub fn group_scale_shift(
         channel_squares
             .iter()
             .for_each(|&channel_square| square += channel_square);
-        let mean = sum / count;
-        let variance = (square / count - mean * mean).max(0.0);
-        let inverse_std = 1.0 / sqrt(variance + NORM_EPSILON);
-        for (((scale, shift), &gamma), &beta) in
-            scale.iter_mut().zip(shift.iter_mut()).zip(gamma).zip(beta)
-        {
-            *scale = (gamma as f64 * inverse_std) as f32;
-            *shift = (beta as f64 - mean * gamma as f64 * inverse_std) as f32;
-        }
+        let moments = mean_inverse_std((sum, square), count);
+        channel_affine(moments, (gamma, beta), (scale, shift));
+    }
+}
+
+/// A group's mean and `1 / sqrt(variance + eps)` from the sums of its `count` values and of
+/// their squares.
+#[inline(always)]
+fn mean_inverse_std((sum, square): (f64, f64), count: f64) -> (f64, f64) {
+    let mean = sum / count;
+    let variance = (square / count - mean * mean).max(0.0);
+    (mean, 1.0 / sqrt(variance + NORM_EPSILON))
+}
+
+/// The `scale` and `shift` of a group's channels (`x * scale + shift`) from its mean and
+/// inverse standard deviation and their affine parameters.
+#[inline(always)]
+fn channel_affine(
+    (mean, inverse_std): (f64, f64),
+    (gamma, beta): (&[f32], &[f32]),
+    (scale, shift): (&mut [f32], &mut [f32]),
+) {
+    for (((scale, shift), &gamma), &beta) in
+        scale.iter_mut().zip(shift.iter_mut()).zip(gamma).zip(beta)
+    {
+        *scale = (gamma as f64 * inverse_std) as f32;
+        *shift = (beta as f64 - mean * gamma as f64 * inverse_std) as f32;
     }
 }
 
@@ -361,34 +359,39 @@ pub fn group_scale_shift(
 #[inline(always)]
 pub fn normalize_max_pool(
     input: &[f32],
-    (height, width, channels): (usize, usize, usize),
+    dims: (usize, usize, usize),
     (scale, shift): (&[f32], &[f32]),
     activation: Activation,
     output: &mut [f32],
 ) {
-    let out_width = crate::config::conv_output(width, 3, 2, 1);
+    let channels = dims.2;
     let (scale, shift) = (&scale[..channels], &shift[..channels]);
-    for (position, out) in output.chunks_exact_mut(channels).enumerate() {
-        let out_y = position / out_width;
-        let out_x = position % out_width;
-        out.fill(f32::NEG_INFINITY);
-        for in_y in (2 * out_y).saturating_sub(1)..(2 * out_y + 2).min(height) {
-            for in_x in (2 * out_x).saturating_sub(1)..(2 * out_x + 2).min(width) {
-                let pixel = &input[(in_y * width + in_x) * channels..][..channels];
-                for (((o, &x), &a), &b) in out.iter_mut().zip(pixel).zip(scale).zip(shift) {
-                    *o = o.max(activate(x * a + b, activation));
-                }
-            }
+    pool_windows(input, dims, output, |out, pixel| {
+        for (((o, &x), &a), &b) in out.iter_mut().zip(pixel).zip(scale).zip(shift) {
+            *o = o.max(activate(x * a + b, activation));
         }
-    }
+    });
 }
 
 /// 3x3 max pool, stride 2, padding 1 (padding never wins) over `[H, W, C]`.
 #[inline(always)]
-pub fn max_pool_3x3_stride_2(
+pub fn max_pool_3x3_stride_2(input: &[f32], dims: (usize, usize, usize), output: &mut [f32]) {
+    pool_windows(input, dims, output, |out, pixel| {
+        for (o, &x) in out.iter_mut().zip(pixel) {
+            *o = o.max(x);
+        }
+    });
+}
+
+/// The 3x3 / 2 pool's walk (padding 1, never read): each output pixel of `[H, W, C]`
+/// `input`'s pooled map starts at minus infinity and `take(out, pixel)` folds in each input
+/// pixel of its window, rows then columns in order.
+#[inline(always)]
+fn pool_windows(
     input: &[f32],
     (height, width, channels): (usize, usize, usize),
     output: &mut [f32],
+    mut take: impl FnMut(&mut [f32], &[f32]),
 ) {
     let out_height = crate::config::conv_output(height, 3, 2, 1);
     let out_width = crate::config::conv_output(width, 3, 2, 1);
@@ -399,10 +402,7 @@ pub fn max_pool_3x3_stride_2(
         out.fill(f32::NEG_INFINITY);
         for in_y in (2 * out_y).saturating_sub(1)..(2 * out_y + 2).min(height) {
             for in_x in (2 * out_x).saturating_sub(1)..(2 * out_x + 2).min(width) {
-                let pixel = &input[(in_y * width + in_x) * channels..][..channels];
-                for (o, &x) in out.iter_mut().zip(pixel) {
-                    *o = o.max(x);
-                }
+                take(out, &input[(in_y * width + in_x) * channels..][..channels]);
             }
         }
     }
