@@ -316,8 +316,8 @@ pub fn stem(
             return;
         }
     };
-    // The moments of a GroupNorm over at most `MOMENT_CHANNELS` channels (the stem's 64).
-    const MOMENT_CHANNELS: usize = 256;
+    // The moments of a GroupNorm that `group_scale_shift` reproduces (the stem's 64).
+    const MOMENT_CHANNELS: usize = ops::GROUP_NORM_CHUNK;
     let mut sums = [0.0f64; MOMENT_CHANNELS];
     let mut squares = [0.0f64; MOMENT_CHANNELS];
     let norm = layer.norm.as_ref().filter(|_| channels <= MOMENT_CHANNELS);

@@ -287,10 +287,14 @@ fn add_span_moments(
     }
 }
 
+/// Channels a GroupNorm may have for [`group_scale_shift`] to give [`group_norm`]'s bits:
+/// the channels [`group_norm`] normalizes in one chunk.
+pub const GROUP_NORM_CHUNK: usize = CHANNELS;
+
 /// The per-channel `scale` and `shift` that [`group_norm`] applies (`x * scale + shift`),
 /// from the channels' moments over `positions` pixels ([`add_channel_moments`]): the same
 /// arithmetic in the same order, so the same bits when the channels fit one of its chunks
-/// (at most 256, as the stem's 64 do).
+/// ([`GROUP_NORM_CHUNK`], as the stem's 64 do).
 pub fn group_scale_shift(
     (sums, squares): (&[f64], &[f64]),
     positions: usize,
