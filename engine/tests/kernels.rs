@@ -6,7 +6,10 @@ use scdp_engine::Backend;
 use scdp_engine::kernels::ops::{self, Activation};
 use scdp_engine::kernels::scalar::Scalar;
 #[cfg(target_arch = "x86_64")]
-use scdp_engine::kernels::x86_64::amx::Amx;
+use scdp_engine::kernels::x86_64::amx::{Amx, TileLayout};
+/// Elsewhere no tile layout runs: `check_on_tiles` reports `None`.
+#[cfg(not(target_arch = "x86_64"))]
+type TileLayout = ();
 use scdp_engine::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels};
 
 struct Lcg(u64);
@@ -1105,6 +1108,14 @@ impl Int8Case {
 }
 
 impl Int8Case {
+    /// The layout the AMX tiles copy this case's input in.
+    #[cfg(target_arch = "x86_64")]
+    fn tile_layout(&self) -> Option<TileLayout> {
+        let (_, planes) = self.packed();
+        let input = DigitRows::from_planes(&planes, self.scale, self.nonnegative);
+        Amx::tile_layout(&self.shape, &input)
+    }
+
     /// [`Int8Case::run`] on the AMX tiles alone; panics if they did not take the shape.
     #[cfg(target_arch = "x86_64")]
     fn run_on_tiles(&self, amx: &Amx, accumulate: Accumulate, initial: &[f32]) -> Vec<f32> {
@@ -1214,6 +1225,7 @@ fn int8_convolution_is_bit_identical_on_every_backend() {
 fn int8_convolution_on_matrix_tiles_is_bit_identical() {
     let mut rng = Lcg(31);
     let backends = backends();
+    let mut layouts = Vec::new();
     let maps = [
         (1, 1),
         (3, 5),
@@ -1246,20 +1258,51 @@ fn int8_convolution_on_matrix_tiles_is_bit_identical() {
             stride,
             padding,
         );
-        check_on_tiles(&mut rng, &backends, shape, &format!("case {case}"));
+        layouts.push(check_on_tiles(
+            &mut rng,
+            &backends,
+            shape,
+            &format!("case {case}"),
+        ));
     }
     // Rows too wide for one band of the tiles' stack buffer (75 pixels of 512 channels, three
     // rows of them): a band is then a span of one row's columns.
     for stride in [1, 2] {
         let shape = ConvShape::square((3, 75, 512), 32, 3, stride, 1);
-        check_on_tiles(&mut rng, &backends, shape, "wide rows");
+        layouts.push(check_on_tiles(&mut rng, &backends, shape, "wide rows"));
+    }
+    // The metaworld trunk's small maps, where the grid layout's dropped positions would cost
+    // whole tiles (fewer output channels than the model's, to keep the reference quick).
+    for shape in [
+        ConvShape::square((4, 4, 512), 64, 3, 1, 1),
+        ConvShape::square((8, 8, 256), 64, 3, 2, 1),
+        ConvShape::square((16, 16, 128), 64, 1, 2, 0),
+    ] {
+        layouts.push(check_on_tiles(&mut rng, &backends, shape, "small map"));
+    }
+    // Both ways of laying a band out ran, when the tiles are here.
+    #[cfg(target_arch = "x86_64")]
+    if Amx::detect().is_some() {
+        for layout in [TileLayout::Grid, TileLayout::KernelColumns] {
+            assert!(
+                layouts.contains(&Some(layout)),
+                "no shape ran in {layout:?}"
+            );
+        }
     }
 }
 
 /// A random int8 convolution of `shape` on every backend and on the AMX tiles alone, bit
-/// for bit against the scalar reference, overwriting and adding.
-fn check_on_tiles(rng: &mut Lcg, backends: &[(&str, &dyn Kernels)], shape: ConvShape, case: &str) {
+/// for bit against the scalar reference, overwriting and adding; the layout the tiles
+/// copied its input in (`None` without them).
+fn check_on_tiles(
+    rng: &mut Lcg,
+    backends: &[(&str, &dyn Kernels)],
+    shape: ConvShape,
+    case: &str,
+) -> Option<TileLayout> {
     let problem = Int8Case::random(rng, shape, true);
+    let mut layout = None;
     let initial = rng.vec(shape.output_len());
     for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
         let expected = problem.run(&Scalar, accumulate, &initial);
@@ -1274,8 +1317,10 @@ fn check_on_tiles(rng: &mut Lcg, backends: &[(&str, &dyn Kernels)], shape: ConvS
             let found = problem.run_on_tiles(amx, accumulate, &initial);
             let what = format!("{case} tiles {shape:?} {accumulate:?}");
             assert_same_bits(&found, &expected, &what);
+            layout = problem.tile_layout();
         }
     }
+    layout
 }
 
 /// The largest products the int8 kernels can meet: activations all 127 against weights all

@@ -88,6 +88,13 @@ impl Amx {
         band(shape, input).is_some()
     }
 
+    /// The layout in which [`conv_int8_on_tiles`](Self::conv_int8_on_tiles) copies the
+    /// input of `shape`, `None` when the tiles do not take it. Tests use it to know that
+    /// both layouts ran.
+    pub fn tile_layout(shape: &ConvShape, input: &DigitRows<'_>) -> Option<TileLayout> {
+        band(shape, input).map(|band| band.layout)
+    }
+
     /// [`covers`](Self::covers) for [`Kernels::conv_int8_codes`]: every U-Net convolution
     /// with int8 weights qualifies.
     pub fn covers_codes(shape: &ConvShape, input: &CodeRows<'_>) -> bool {
@@ -452,24 +459,49 @@ const BAND_BYTES: usize = 128 * 1024;
 /// nine.
 const MAX_PARTIAL_TAPS: usize = 9;
 
+/// How a band's input is laid out for the tiles, which need the 16 positions of a tile to
+/// read 16 equally spaced pixels at every kernel tap.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TileLayout {
+    /// Each padded input row copied once; a band row is `grid` positions, the output's
+    /// columns and the `kernel_width - 1` (or so) padding columns after them, computed and
+    /// dropped. Cheap to copy; on small maps the dropped positions cost whole tiles (a 4 x 4
+    /// map is 24 positions, two tiles for 16 pixels).
+    Grid,
+    /// One image per kernel column holding just the pixels that column reads for the
+    /// band's outputs, so positions are the output pixels and nothing is dropped, for
+    /// `kernel_width` times the copying.
+    KernelColumns,
+}
+
 /// Where the tiles of one band read.
 ///
 /// A band is `rows` x `columns` output pixels. Its input is copied, zero padding included,
-/// into `phases` images per digit plane (`stride` of them, fewer for a kernel shorter than
-/// the stride): image `r` holds the padded input rows `band_top * stride + j * stride + r`,
-/// `grid * stride` pixels each, every pixel `pitch` bytes (whole 64-channel steps). An
-/// output pixel is a position `q = row * grid + column` of the band, and at kernel tap
-/// `(ky, kx)` it reads pixel `stride * q + (ky / stride) * grid * stride + kx` of image
-/// `ky % stride`: 16 consecutive positions read 16 pixels `stride * pitch` bytes apart,
-/// one `tileloadd` whatever the padding and wherever a row of the map ends. The positions
-/// `column >= columns` are computed and dropped (one or two a row: the padding columns).
+/// into `phases x column_images` images per digit plane. Image `(r, c)` holds the padded
+/// input rows `band_top * stride + j * stride + r`; each of its rows is `row_pixels()`
+/// pixels of `pitch` bytes (whole 64-channel steps). An output pixel is a position
+/// `q = row * grid + column` of the band, and at kernel tap `(ky, kx)` it reads pixel
+/// `step * q + (ky / stride) * row_pixels() + offset` of image `(ky % stride, c)`:
+/// - [`TileLayout::Grid`]: one column image, every padded column from the band's first
+///   (`step = stride`, `c = 0`, `offset = kx`); the positions `column >= columns` are
+///   computed and dropped;
+/// - [`TileLayout::KernelColumns`]: image `c = kx` holds padded columns
+///   `band_left * stride + kx + j * stride` (`step = 1`, `offset = 0`, `grid = columns`).
+///
+/// Either way 16 consecutive positions read 16 pixels `step * pitch` bytes apart, one
+/// `tileloadd` whatever the padding and wherever a row of the map ends.
 #[derive(Clone, Copy, Debug)]
 struct Band {
+    layout: TileLayout,
     rows: usize,
     columns: usize,
     stride: usize,
+    /// Positions a band row holds.
     grid: usize,
+    /// Pixels from one position to the next.
+    step: usize,
     phases: usize,
+    column_images: usize,
     /// Image rows copied: the band's rows and the kernel's reach below them.
     image_rows: usize,
     /// Pixels of each image: its rows and the slack the last tile of positions reads past
@@ -483,39 +515,85 @@ struct Band {
 impl Band {
     /// The band of `rows` x `columns` output pixels of a convolution whose input pixels
     /// hold `channels` values.
-    fn new(shape: &ConvShape, channels: usize, rows: usize, columns: usize) -> Self {
+    fn new(
+        shape: &ConvShape,
+        channels: usize,
+        layout: TileLayout,
+        (rows, columns): (usize, usize),
+    ) -> Self {
         let stride = shape.stride;
-        let grid = ((columns - 1) * stride + shape.kernel_width).div_ceil(stride);
+        let (grid, step, column_images, reach) = match layout {
+            TileLayout::Grid => {
+                let grid = ((columns - 1) * stride + shape.kernel_width).div_ceil(stride);
+                (grid, stride, 1, shape.kernel_width - 1)
+            }
+            TileLayout::KernelColumns => (columns, 1, shape.kernel_width, 0),
+        };
         let below = (shape.kernel_height - 1) / stride;
         let tiles = (rows * grid).div_ceil(BLOCK_PIXELS);
-        let last_read = stride * (tiles * BLOCK_PIXELS - 1) + below * grid * stride;
+        let row_pixels = grid * step;
+        let last_read = step * (tiles * BLOCK_PIXELS - 1) + below * row_pixels + reach;
         let image_rows = rows + below;
         Band {
+            layout,
             rows,
             columns,
             stride,
             grid,
+            step,
             phases: stride.min(shape.kernel_height),
+            column_images,
             image_rows,
-            image_pixels: (last_read + shape.kernel_width).max(image_rows * grid * stride),
+            image_pixels: (last_read + 1).max(image_rows * row_pixels),
             pitch: step_channels(channels),
             tiles,
         }
+    }
+
+    const fn row_pixels(&self) -> usize {
+        self.grid * self.step
     }
 
     const fn image_bytes(&self) -> usize {
         self.image_pixels * self.pitch
     }
 
-    const fn bytes(&self) -> usize {
-        2 * self.phases * self.image_bytes()
+    const fn images(&self) -> usize {
+        self.phases * self.column_images
     }
 
-    /// The largest band of whole output rows that fits [`BAND_BYTES`] (spread evenly over
-    /// the map), or of part of one row; `None` when not even one output pixel fits.
+    const fn bytes(&self) -> usize {
+        2 * self.images() * self.image_bytes()
+    }
+
+    /// The image and the pixel in it that position 0 of the band reads at tap `(ky, kx)`.
+    const fn tap_origin(&self, kernel_y: usize, kernel_x: usize) -> (usize, usize) {
+        let (column_image, offset) = match self.layout {
+            TileLayout::Grid => (0, kernel_x),
+            TileLayout::KernelColumns => (kernel_x, 0),
+        };
+        let image = (kernel_y % self.stride) * self.column_images + column_image;
+        (image, kernel_y / self.stride * self.row_pixels() + offset)
+    }
+
+    /// The band plan for `shape`: of the two layouts' plans, the one [`Band::cost`] rates
+    /// cheaper; `None` when not even one output pixel fits.
     fn plan(shape: &ConvShape, channels: usize) -> Option<Band> {
+        let grid = Band::plan_in(shape, channels, TileLayout::Grid)?;
+        Some(
+            match Band::plan_in(shape, channels, TileLayout::KernelColumns) {
+                Some(columns) if columns.cost(shape) < grid.cost(shape) => columns,
+                _ => grid,
+            },
+        )
+    }
+
+    /// The largest band of whole output rows in `layout` that fits [`BAND_BYTES`] (spread
+    /// evenly over the map), or of part of one row; `None` when not even one output pixel
+    /// fits.
+    fn plan_in(shape: &ConvShape, channels: usize, layout: TileLayout) -> Option<Band> {
         let (out_height, out_width) = (shape.out_height(), shape.out_width());
-        let band = |rows, columns| Band::new(shape, channels, rows, columns);
+        let band = |rows, columns| Band::new(shape, channels, layout, (rows, columns));
         let fits = |rows, columns| band(rows, columns).bytes() <= BAND_BYTES;
         if out_height == 0 || out_width == 0 {
             return None;
@@ -536,6 +614,43 @@ impl Band {
         }
         let rows = out_height.div_ceil(out_height.div_ceil(fitting));
         Some(band(rows, out_width))
+    }
+
+    /// The bands covering the output with this plan, as [`conv`] walks them: each band's
+    /// geometry and first output pixel.
+    fn bands(self, shape: &ConvShape) -> impl Iterator<Item = (Band, (usize, usize))> {
+        let (out_height, out_width) = (shape.out_height(), shape.out_width());
+        // The pitch is the channels rounded up to whole steps: `Band::new` rounds it to itself.
+        let channels = self.pitch;
+        (0..out_height).step_by(self.rows).flat_map(move |top| {
+            (0..out_width).step_by(self.columns).map(move |left| {
+                let size = (
+                    self.rows.min(out_height - top),
+                    self.columns.min(out_width - left),
+                );
+                (Band::new(shape, channels, self.layout, size), (top, left))
+            })
+        })
+    }
+
+    /// A rough count of cycles for the whole convolution in this plan, to choose a layout:
+    /// the products (a `tdpbusd` per digit, weight tile and 64-channel step, about 16
+    /// cycles each), the copying of the bands and the weights streamed again for every
+    /// band (about 8 bytes a cycle each, measured: the layouts' times on the model's
+    /// layers order as this cost does).
+    fn cost(self, shape: &ConvShape) -> usize {
+        const PRODUCT_CYCLES: usize = 16;
+        const BYTES_PER_CYCLE: usize = 8;
+        let taps = shape.kernel_height * shape.kernel_width;
+        let steps = taps * self.pitch / CHANNELS_PER_STEP;
+        let blocks = shape.out_channels / BLOCK_CHANNELS;
+        let products_per_tile = blocks * steps * 4;
+        self.bands(shape)
+            .map(|(band, _)| {
+                band.tiles * products_per_tile * PRODUCT_CYCLES
+                    + (band.bytes() + shape.int8_weight_len()) / BYTES_PER_CYCLE
+            })
+            .sum()
     }
 }
 
@@ -571,7 +686,7 @@ unsafe fn conv<I: BandInput>(
     accumulate: Accumulate,
     plan: Band,
 ) {
-    let (out_height, out_width) = (shape.out_height(), shape.out_width());
+    let out_width = shape.out_width();
     let taps = shape.kernel_height * shape.kernel_width;
     let channels = I::channels(shape);
     // The i32 bound takes digits of at most 127 in magnitude.
@@ -593,43 +708,39 @@ unsafe fn conv<I: BandInput>(
     // SAFETY: the caller vouches for AMX and the permission; the configuration is a valid
     // palette-1 layout (64 aligned bytes).
     unsafe { asm!("ldtilecfg [{}]", in(reg) TILE_CONFIG.0.as_ptr(), options(nostack)) };
-    for top in (0..out_height).step_by(plan.rows) {
-        for left in (0..out_width).step_by(plan.columns) {
-            let rows = plan.rows.min(out_height - top);
-            let geometry = Band::new(shape, channels, rows, plan.columns.min(out_width - left));
-            // SAFETY: AVX-512F; `geometry` is no larger than `plan`, which fits the buffer.
-            unsafe { fill_band(shape, input, &geometry, (top, left), &mut band) };
-            for channel in (0..shape.out_channels).step_by(BLOCK_CHANNELS) {
-                if partial {
-                    // SAFETY: the block's channels and every tap are inside `weight`.
-                    unsafe { pack_partial_step(shape, channels, weight, channel, &mut packed) };
-                }
-                for tile in 0..geometry.tiles {
-                    let first = tile * BLOCK_PIXELS;
-                    // SAFETY: the band holds every pixel the tile reads (`Band`); the block's
-                    // weights are inside `weight`.
-                    unsafe {
-                        tile_sums::<I>(shape, &geometry, &band, (weight, channel), &packed, first)
-                    };
-                    // The previous block's sums go out while the matrix unit works.
-                    let set = match pending.take() {
-                        Some(previous) => {
-                            // SAFETY: AVX-512F; `previous` names pixels of the output.
-                            unsafe { epilogue.write(&sums[previous.set], &previous, output) };
-                            1 - previous.set
-                        }
-                        None => 0,
-                    };
-                    // SAFETY: tiles configured above.
-                    unsafe { store_sums(&mut sums[set]) };
-                    pending = Some(Pending {
-                        set,
-                        channel,
-                        first,
-                        band: geometry,
-                        origin: (top, left),
-                    });
-                }
+    for (geometry, origin) in plan.bands(shape) {
+        // SAFETY: AVX-512F; `geometry` is no larger than `plan`, which fits the buffer.
+        unsafe { fill_band(shape, input, &geometry, origin, &mut band) };
+        for channel in (0..shape.out_channels).step_by(BLOCK_CHANNELS) {
+            if partial {
+                // SAFETY: the block's channels and every tap are inside `weight`.
+                unsafe { pack_partial_step(shape, channels, weight, channel, &mut packed) };
+            }
+            for tile in 0..geometry.tiles {
+                let first = tile * BLOCK_PIXELS;
+                // SAFETY: the band holds every pixel the tile reads (`Band`); the block's
+                // weights are inside `weight`.
+                unsafe {
+                    tile_sums::<I>(shape, &geometry, &band, (weight, channel), &packed, first)
+                };
+                // The previous block's sums go out while the matrix unit works.
+                let set = match pending.take() {
+                    Some(previous) => {
+                        // SAFETY: AVX-512F; `previous` names pixels of the output.
+                        unsafe { epilogue.write(&sums[previous.set], &previous, output) };
+                        1 - previous.set
+                    }
+                    None => 0,
+                };
+                // SAFETY: tiles configured above.
+                unsafe { store_sums(&mut sums[set]) };
+                pending = Some(Pending {
+                    set,
+                    channel,
+                    first,
+                    band: geometry,
+                    origin,
+                });
             }
         }
     }
@@ -657,51 +768,73 @@ unsafe fn fill_band<I: BandInput>(
 ) {
     let (in_height, in_width) = (shape.in_height, shape.in_width);
     let pitch = geometry.pitch;
-    let row_pixels = geometry.grid * geometry.stride;
+    let row_pixels = geometry.row_pixels();
     let row_bytes = row_pixels * pitch;
-    // The band's columns that read the input: padded column `left * stride + c` is input
-    // column `left * stride + c - padding_width`.
-    let shift = (left * geometry.stride) as isize - shape.padding_width as isize;
-    let first = (-shift).clamp(0, row_pixels as isize) as usize;
-    let end = (in_width as isize - shift).clamp(first as isize, row_pixels as isize) as usize;
     let base = band.0.as_mut_ptr().cast::<u8>();
-    let low_images = geometry.phases * geometry.image_bytes();
+    let low_images = geometry.images() * geometry.image_bytes();
     for phase in 0..geometry.phases {
-        // SAFETY: the images lie inside the buffer (`geometry.bytes() <= BAND_BYTES`).
-        let high = unsafe { base.add(phase * geometry.image_bytes()) };
-        let low = unsafe { high.add(low_images) };
-        for image_row in 0..geometry.image_rows {
-            let padded_row = (top + image_row) * geometry.stride + phase;
-            let in_row = padded_row as isize - shape.padding_height as isize;
-            let at = image_row * row_bytes;
-            // SAFETY (both): the row lies inside each image.
-            let to = unsafe { (high.add(at), low.add(at)) };
-            if !(0..in_height as isize).contains(&in_row) || first == end {
+        for column_image in 0..geometry.column_images {
+            let image = phase * geometry.column_images + column_image;
+            // Pixel `c` of an image row is padded column `left * stride + column_image +
+            // c * column_step`, input column that minus the padding.
+            let column_step = geometry.stride / geometry.step;
+            let shift =
+                (left * geometry.stride + column_image) as isize - shape.padding_width as isize;
+            let inside = |column: isize| -> usize {
+                let pixels = (column - shift).max(0) as usize;
+                pixels.div_ceil(column_step).min(row_pixels)
+            };
+            let (first, end) = (inside(0), inside(in_width as isize));
+            // SAFETY: the images lie inside the buffer (`geometry.bytes() <= BAND_BYTES`).
+            let high = unsafe { base.add(image * geometry.image_bytes()) };
+            let low = unsafe { high.add(low_images) };
+            for image_row in 0..geometry.image_rows {
+                let padded_row = (top + image_row) * geometry.stride + phase;
+                let in_row = padded_row as isize - shape.padding_height as isize;
+                let at = image_row * row_bytes;
+                // SAFETY (both): the row lies inside each image.
+                let to = unsafe { (high.add(at), low.add(at)) };
+                if !(0..in_height as isize).contains(&in_row) || first == end {
+                    unsafe {
+                        to.0.write_bytes(0, row_bytes);
+                        to.1.write_bytes(0, row_bytes);
+                    }
+                    continue;
+                }
+                let first_column = (shift + (first * column_step) as isize) as usize;
+                let first_pixel = in_row as usize * in_width + first_column;
+                // SAFETY: the row lies inside each image; the inside pixels are the input's.
                 unsafe {
-                    to.0.write_bytes(0, row_bytes);
-                    to.1.write_bytes(0, row_bytes);
+                    for to in [to.0, to.1] {
+                        to.write_bytes(0, first * pitch);
+                        to.add(end * pitch)
+                            .write_bytes(0, (row_pixels - end) * pitch);
+                    }
+                    let rows = (to.0.add(first * pitch), to.1.add(first * pitch));
+                    if column_step == 1 {
+                        input.copy_digits(shape, (first_pixel, end - first), rows, pitch);
+                    } else {
+                        for pixel in 0..end - first {
+                            let at = pixel * pitch;
+                            let from = first_pixel + pixel * column_step;
+                            input.copy_digits(
+                                shape,
+                                (from, 1),
+                                (rows.0.add(at), rows.1.add(at)),
+                                pitch,
+                            );
+                        }
+                    }
                 }
-                continue;
             }
-            let first_pixel = in_row as usize * in_width + (first as isize + shift) as usize;
-            // SAFETY: the row lies inside each image; the inside pixels are the input's.
+            let copied = geometry.image_rows * row_bytes;
+            // SAFETY: the slack lies inside each image.
             unsafe {
-                for to in [to.0, to.1] {
-                    to.write_bytes(0, first * pitch);
-                    to.add(end * pitch)
-                        .write_bytes(0, (row_pixels - end) * pitch);
-                }
-                let rows = (to.0.add(first * pitch), to.1.add(first * pitch));
-                input.copy_digits(shape, (first_pixel, end - first), rows, pitch);
+                high.add(copied)
+                    .write_bytes(0, geometry.image_bytes() - copied);
+                low.add(copied)
+                    .write_bytes(0, geometry.image_bytes() - copied);
             }
-        }
-        let copied = geometry.image_rows * row_bytes;
-        // SAFETY: the slack lies inside each image.
-        unsafe {
-            high.add(copied)
-                .write_bytes(0, geometry.image_bytes() - copied);
-            low.add(copied)
-                .write_bytes(0, geometry.image_bytes() - copied);
         }
     }
 }
@@ -714,7 +847,9 @@ unsafe fn fill_band<I: BandInput>(
 /// bytes; `pitch` is a multiple of 64 and at least `in_channels`.
 #[inline(always)]
 unsafe fn copy_pixels(from: &[i8], in_channels: usize, to: *mut u8, pitch: usize) {
-    if pitch == in_channels {
+    // One pixel (the strided copies of `TileLayout::KernelColumns`) is a few vector moves,
+    // cheaper inline than a call.
+    if pitch == in_channels && from.len() > in_channels {
         // SAFETY: the caller's promise; `from` is a slice of as many bytes.
         unsafe { core::ptr::copy_nonoverlapping(from.as_ptr().cast(), to, from.len()) };
         return;
@@ -790,9 +925,8 @@ unsafe fn tile_sums<I: BandInput>(
     packed: &[TileBuffer; 2 * MAX_PARTIAL_TAPS],
     first: usize,
 ) {
-    let stride = geometry.stride;
     let pitch = geometry.pitch;
-    let row_step = stride * pitch;
+    let row_step = geometry.step * pitch;
     // Whole quads: the weights' quads, zero-padded past the input channels.
     let quads = int8_quads(shape.in_channels);
     let full_steps = quads / ROWS;
@@ -801,7 +935,7 @@ unsafe fn tile_sums<I: BandInput>(
         .as_ptr()
         .cast::<u8>();
     let band = band.0.as_ptr().cast::<u8>();
-    let low_images = geometry.phases * geometry.image_bytes();
+    let low_images = geometry.images() * geometry.image_bytes();
     // SAFETY: tiles are configured (caller).
     unsafe {
         asm!(
@@ -813,14 +947,13 @@ unsafe fn tile_sums<I: BandInput>(
         )
     };
     for kernel_y in 0..shape.kernel_height {
-        let image = (kernel_y % stride) * geometry.image_bytes();
-        let below = kernel_y / stride * geometry.grid * stride;
         for kernel_x in 0..shape.kernel_width {
             let tap = kernel_y * shape.kernel_width + kernel_x;
-            let pixel = stride * first + below + kernel_x;
+            let (image, origin) = geometry.tap_origin(kernel_y, kernel_x);
+            let pixel = geometry.step * first + origin;
             // SAFETY (all below): `Band` puts every pixel 16 positions read inside the
             // image, and the block's quads of every step inside `weight`.
-            let high = unsafe { band.add(image + pixel * pitch) };
+            let high = unsafe { band.add(image * geometry.image_bytes() + pixel * pitch) };
             let low = unsafe { high.add(low_images) };
             for step in 0..full_steps {
                 let channels = step * CHANNELS_PER_STEP;
