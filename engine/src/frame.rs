@@ -29,8 +29,8 @@ pub const fn padded_size(config: &ModelConfig) -> (usize, usize) {
     )
 }
 
-/// Bytes of one digit plane of the padded image ([`pad_digits`]).
-pub const fn padded_plane_bytes(config: &ModelConfig) -> usize {
+/// Bytes of the padded image ([`pad_image`]).
+pub const fn padded_image_bytes(config: &ModelConfig) -> usize {
     let (rows, columns) = padded_size(config);
     rows * columns * QUAD
 }
@@ -71,20 +71,13 @@ pub fn normalize(config: &ModelConfig, image: &[u8], output: &mut [f32]) {
     }
 }
 
-/// The image bytes (of the right size, [`check_size`]) as two digit planes
-/// (`byte = 128 high + low`, both in 0..=127, what the int8 trunk kernels read), each pixel a quad (its colours and a zero), with the stem's
-/// padding of zero pixels around the image: `[rows, columns, 4]` of [`padded_size`] per
-/// plane, the high plane first in `planes` (at least `2 padded_plane_bytes` bytes).
+/// The image bytes (of the right size, [`check_size`]), each pixel a quad (its colours
+/// and a zero), with the stem's padding of zero pixels around them: `[rows, columns, 4]`
+/// of [`padded_size`], at the front of `padded` (at least [`padded_image_bytes`] bytes).
 /// Without ImageNet normalization a zero byte is the network's zero, so these codes with
 /// the scale `1 / 255` are the stem's input exactly.
-pub fn pad_digits<'p>(
-    config: &ModelConfig,
-    image: &[u8],
-    planes: &'p mut [i8],
-) -> (&'p [i8], &'p [i8]) {
-    let plane_bytes = padded_plane_bytes(config);
-    let (high, rest) = planes.split_at_mut(plane_bytes);
-    let low = &mut rest[..plane_bytes];
+pub fn pad_image<'p>(config: &ModelConfig, image: &[u8], padded: &'p mut [u8]) -> &'p [u8] {
+    let padded = &mut padded[..padded_image_bytes(config)];
     let (_, columns) = padded_size(config);
     let width = config.image_width as usize;
     debug_assert_eq!(image.len(), config.image_height as usize * width * 3);
@@ -92,42 +85,26 @@ pub fn pad_digits<'p>(
     let border = STEM_PADDING * QUAD;
     let padding_lines = STEM_PADDING * line_bytes;
     // Only the padding is zeroed: the image's quads are written whole below.
-    for plane in [&mut *high, &mut *low] {
-        plane[..padding_lines].fill(0);
-        plane[plane_bytes - padding_lines..].fill(0);
-    }
+    let end = padded.len() - padding_lines;
+    padded[..padding_lines].fill(0);
+    padded[end..].fill(0);
     let lines = image.chunks_exact(width * 3);
-    let high_lines = high[padding_lines..].chunks_exact_mut(line_bytes);
-    let low_lines = low[padding_lines..].chunks_exact_mut(line_bytes);
-    for ((line, high_line), low_line) in lines.zip(high_lines).zip(low_lines) {
-        for plane_line in [&mut *high_line, &mut *low_line] {
-            plane_line[..border].fill(0);
-            plane_line[border + width * QUAD..].fill(0);
-        }
-        let high_quads = high_line[border..].chunks_exact_mut(QUAD);
-        let low_quads = low_line[border..].chunks_exact_mut(QUAD);
-        for ((pixel, high_quad), low_quad) in line.chunks_exact(3).zip(high_quads).zip(low_quads) {
-            // The pixel's quad as one word, its three colours split at once (byte-wise
-            // byte loops were a third of the stem's preparation).
-            let word = u32::from_le_bytes([pixel[0], pixel[1], pixel[2], 0]);
-            let high_word = (word >> 7) & 0x0001_0101;
-            let low_word = word & 0x007f_7f7f;
-            high_quad.copy_from_slice(&bytemuck::cast::<[u8; QUAD], [i8; QUAD]>(
-                high_word.to_le_bytes(),
-            ));
-            low_quad.copy_from_slice(&bytemuck::cast::<[u8; QUAD], [i8; QUAD]>(
-                low_word.to_le_bytes(),
-            ));
+    for (line, padded_line) in lines.zip(padded[padding_lines..].chunks_exact_mut(line_bytes)) {
+        padded_line[..border].fill(0);
+        padded_line[border + width * QUAD..].fill(0);
+        let quads = padded_line[border..].chunks_exact_mut(QUAD);
+        for (pixel, quad) in line.chunks_exact(3).zip(quads) {
+            quad.copy_from_slice(&[pixel[0], pixel[1], pixel[2], 0]);
         }
     }
-    (high, low)
+    padded
 }
 
-/// The stem's input patches of output rows `rows`, one digit plane of [`pad_digits`]:
-/// for each output pixel, [`PATCH_CHANNELS`] bytes, tap `(kernel_y, kernel_x)`'s quad at
-/// `4 (7 kernel_y + kernel_x)`. A kernel row's seven quads are adjacent in the padded
-/// plane, so each is one copy.
-pub fn patch_rows(config: &ModelConfig, padded: &[i8], rows: Range<usize>, patches: &mut [i8]) {
+/// The stem's input patches of output rows `rows`, from the padded image of
+/// [`pad_image`]: for each output pixel, [`PATCH_CHANNELS`] bytes, tap
+/// `(kernel_y, kernel_x)`'s quad at `4 (7 kernel_y + kernel_x)`. A kernel row's seven
+/// quads are adjacent in the padded image, so each is one copy.
+pub fn patch_rows(config: &ModelConfig, padded: &[u8], rows: Range<usize>, patches: &mut [u8]) {
     let (_, columns) = padded_size(config);
     let (_, out_width) = config.stem_size();
     let row_bytes = STEM_KERNEL * QUAD;

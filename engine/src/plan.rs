@@ -246,8 +246,8 @@ impl Lengths {
         let (c1_height, c1_width) = config.pyramid_size(0);
         let maxpool = c1_height as u64 * c1_width as u64 * config.stage_channels(0) as u64;
         largest_activation = max(largest_activation, maxpool);
-        // An int8 stem reads the image as two padded digit planes (bytes) instead.
-        let padded_image = (2 * frame::padded_plane_bytes(config) as u64).div_ceil(4);
+        // An int8 stem reads the padded image bytes instead.
+        let padded_image = (frame::padded_image_bytes(config) as u64).div_ceil(4);
         largest_activation = max(largest_activation, padded_image);
         let trunk_activation = aligned(largest_activation);
         let trunk_stem = aligned(stem);
@@ -272,7 +272,7 @@ impl Lengths {
         let unet_codes = 2 * horizon * 4 * max(2 * widest, action_dim).div_ceil(4);
         // The FiLM layers' input, the activated global condition, as one row of codes.
         let cond_codes = 2 * CodeRows::row_stride(config.global_cond_dim()) as u64;
-        let stem_patch_row = 2 * stem_width as u64 * frame::PATCH_CHANNELS as u64;
+        let stem_patch_row = stem_width as u64 * frame::PATCH_CHANNELS as u64;
         let quantized_bytes = max(
             max(2 * trunk_activation, unet_codes),
             max(stem_patch_row, cond_codes),

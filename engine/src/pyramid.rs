@@ -6,7 +6,7 @@ use crate::config::PYRAMID_LEVELS;
 use crate::frame::{self, PATCH_CHANNELS, STEM_KERNEL, STEM_PADDING, STEM_STRIDE};
 use crate::kernels::ops::{self, Activation};
 use crate::kernels::{
-    self, Accumulate, Activations, ConvShape, DigitRows, Kernels, QuantizeScratch,
+    self, Accumulate, Activations, ByteRows, ConvShape, DigitRows, Kernels, QuantizeScratch,
 };
 use crate::plan::FrameLayout;
 use crate::weights::{Conv, ConvNorm, PyramidWeights, Weight};
@@ -274,9 +274,10 @@ fn projection_shape(config: &ModelConfig, level: usize) -> ConvShape {
 ///
 /// With int8 weights and no ImageNet normalization the image bytes are the input codes
 /// exactly (scale `1 / 255`): the stem runs as a 1x1 int8 convolution over its patches
-/// ([`frame::PATCH_CHANNELS`] bytes a pixel), a band of output rows at a time in the
-/// quantization buffer, so its 7x7 kernel over three channels reads 49 quads in one run
-/// instead of one quad a tap. It gives exactly what the 7x7 int8 convolution gives on the
+/// ([`frame::PATCH_CHANNELS`] bytes a pixel, [`Kernels::conv_int8_bytes`]: the matrix
+/// tiles multiply whole bytes), a band of output rows at a time in the quantization
+/// buffer, so its 7x7 kernel over three channels reads 49 quads in one run instead of one
+/// quad a tap. It gives exactly what the 7x7 int8 convolution gives on the
 /// same codes. There the GroupNorm's moments are taken band by band, while each band is in
 /// the caches, and the normalization is applied inside the max pool, so the full-size map
 /// (4.9 MB for panda) is written once and read once; the bits are those of GroupNorm then
@@ -321,28 +322,23 @@ pub fn stem(
     let mut sums = [0.0f64; MOMENT_CHANNELS];
     let mut squares = [0.0f64; MOMENT_CHANNELS];
     let norm = layer.norm.as_ref().filter(|_| channels <= MOMENT_CHANNELS);
-    let (high_image, low_image) =
-        frame::pad_digits(config, image, bytemuck::cast_slice_mut(pooled));
+    let padded = frame::pad_image(config, image, bytemuck::cast_slice_mut(pooled));
     // The plan makes room for at least one row of patches.
-    let band_rows =
-        (quantized.values.len() / (2 * out_width * PATCH_CHANNELS)).clamp(1, out_height);
+    let band_rows = (quantized.values.len() / (out_width * PATCH_CHANNELS)).clamp(1, out_height);
     for first_row in (0..out_height).step_by(band_rows) {
         let rows = band_rows.min(out_height - first_row);
         let band = ConvShape::square((rows, out_width, PATCH_CHANNELS), channels, 1, 1, 0);
-        let (high, low) = quantized.values[..2 * band.input_len()].split_at_mut(band.input_len());
-        let band_rows_range = first_row..first_row + rows;
-        frame::patch_rows(config, high_image, band_rows_range.clone(), high);
-        frame::patch_rows(config, low_image, band_rows_range, low);
-        let digits = DigitRows {
-            high,
-            low,
+        let patches: &mut [u8] =
+            bytemuck::cast_slice_mut(&mut quantized.values[..band.input_len()]);
+        frame::patch_rows(config, padded, first_row..first_row + rows, patches);
+        let bytes = ByteRows {
+            bytes: patches,
             scale: 1.0 / 255.0,
-            nonnegative: true,
         };
         let output = &mut map[first_row * out_width * channels..][..band.output_len()];
-        kernels.conv_int8(
+        kernels.conv_int8_bytes(
             &band,
-            &digits,
+            &bytes,
             values,
             scales,
             layer.conv.bias,

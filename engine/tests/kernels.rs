@@ -10,7 +10,7 @@ use scdp_engine::kernels::x86_64::amx::{Amx, TileLayout};
 /// Elsewhere no tile layout runs: `check_on_tiles` reports `None`.
 #[cfg(not(target_arch = "x86_64"))]
 type TileLayout = ();
-use scdp_engine::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels};
+use scdp_engine::kernels::{Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels};
 
 struct Lcg(u64);
 
@@ -1321,6 +1321,96 @@ fn check_on_tiles(
         }
     }
     layout
+}
+
+/// The pointwise int8 convolution on bytes (the stem's patches): every backend and the AMX
+/// tiles alone against the scalar reference, and the reference against `conv_int8` on the
+/// bytes split into digits, bit for bit; bytes 0 and 255 and weights -128 and 127 included,
+/// pixel counts around the tiles' blocks of 32, channel counts the tiles take and do not.
+#[test]
+fn byte_convolution_equals_the_digit_convolution_on_every_backend() {
+    let mut rng = Lcg(77);
+    let backends = backends();
+    let mut on_tiles = 0;
+    for case in 0..24 {
+        let pixels = [1, 15, 16, 17, 31, 32, 33, 9 * 160][case % 8];
+        let in_channels = [196, 4, 64, 256, 6, 100][case % 6];
+        let out_channels = [64, 32, 96, 40][case % 4];
+        let shape = ConvShape::square((1, pixels, in_channels), out_channels, 1, 1, 0);
+        let bytes: Vec<u8> = (0..shape.input_len())
+            .map(|i| match i % 7 {
+                0 => 255,
+                1 => 0,
+                _ => (rng.next().abs() * 255.0) as u8,
+            })
+            .collect();
+        let mut weight = random_i8(&mut rng, shape.weight_len());
+        weight[0] = -128;
+        weight[1] = 127;
+        let mut packed = vec![0i8; shape.int8_weight_len()];
+        scdp_engine::kernels::pack_int8_quads(&weight, in_channels, out_channels, &mut packed);
+        let weight_scales: Vec<f32> = (0..out_channels)
+            .map(|_| 0.001 + rng.next().abs())
+            .collect();
+        let bias = rng.vec(out_channels);
+        let input = ByteRows {
+            bytes: &bytes,
+            scale: 1.0 / 255.0,
+        };
+        let parameters = (&packed[..], &weight_scales[..], &bias[..]);
+        let initial = rng.vec(shape.output_len());
+        for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
+            let run = |kernels: &dyn Kernels| {
+                let mut output = initial.clone();
+                let (weight, scales, bias) = parameters;
+                kernels.conv_int8_bytes(
+                    &shape,
+                    &input,
+                    weight,
+                    scales,
+                    bias,
+                    &mut output,
+                    accumulate,
+                );
+                output
+            };
+            let expected = run(&Scalar);
+            let high: Vec<i8> = bytes.iter().map(|&b| (b >> 7) as i8).collect();
+            let low: Vec<i8> = bytes.iter().map(|&b| (b & 127) as i8).collect();
+            let digits = DigitRows {
+                high: &high,
+                low: &low,
+                scale: input.scale,
+                nonnegative: true,
+            };
+            let mut split = initial.clone();
+            let (weight, scales, bias) = parameters;
+            Scalar.conv_int8(
+                &shape, &digits, weight, scales, bias, &mut split, accumulate,
+            );
+            let what = format!("case {case} {shape:?} {accumulate:?}");
+            assert_same_bits(&expected, &split, &format!("{what}: bytes against digits"));
+            for (name, kernels) in &backends {
+                assert_same_bits(&run(*kernels), &expected, &format!("{what} {name}"));
+            }
+            #[cfg(target_arch = "x86_64")]
+            if let Some(amx) = Amx::detect() {
+                let mut found = initial.clone();
+                let taken = amx
+                    .conv_int8_bytes_on_tiles(&shape, &input, parameters, &mut found, accumulate);
+                let takes = in_channels % 4 == 0 && out_channels % 32 == 0;
+                assert_eq!(taken, takes, "{what}: the tiles' choice");
+                if taken {
+                    assert_same_bits(&found, &expected, &format!("{what} tiles"));
+                    on_tiles += 1;
+                }
+            }
+        }
+    }
+    #[cfg(target_arch = "x86_64")]
+    if Amx::detect().is_some() {
+        assert!(on_tiles >= 10, "only {on_tiles} cases ran on the tiles");
+    }
 }
 
 /// The largest products the int8 kernels can meet: activations all 127 against weights all

@@ -131,8 +131,8 @@ fn int8_stem_over_patches_equals_the_7x7_convolution() {
         );
         // Room for three output rows of patches: bands of 3, 3, ..., and a shorter last.
         for band_rows in [1, 3, shape.out_height()] {
-            let mut quantized = vec![0i8; band_rows * 2 * out_width * PATCH_CHANNELS + 5];
-            // The pooled map's buffer first holds the padded image's digit planes.
+            let mut quantized = vec![0i8; band_rows * out_width * PATCH_CHANNELS + 5];
+            // The pooled map's buffer first holds the padded image.
             let mut pooled = vec![f32::NAN; (4 * height * width).max(expected_pooled.len())];
             let mut map = vec![f32::NAN; shape.output_len()];
             pyramid::stem(

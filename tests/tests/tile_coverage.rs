@@ -10,7 +10,9 @@ use std::sync::Mutex;
 
 use scdp_engine::frame::PATCH_CHANNELS;
 use scdp_engine::kernels::x86_64::amx::Amx;
-use scdp_engine::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels, scalar::Scalar};
+use scdp_engine::kernels::{
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, scalar::Scalar,
+};
 use scdp_engine::{ArenaPlan, Camera, Model, ModelConfig, Noise, Policy};
 use scdp_tests::synthetic_weights_file_as;
 use weights_tool::Quant;
@@ -60,6 +62,29 @@ impl Kernels for Recording {
         let covered = Amx::covers(shape, input);
         self.calls.lock().unwrap().push((*shape, covered));
         Scalar.conv_int8(
+            shape,
+            input,
+            weight,
+            weight_scales,
+            bias,
+            output,
+            accumulate,
+        )
+    }
+
+    fn conv_int8_bytes(
+        &self,
+        shape: &ConvShape,
+        input: &ByteRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let covered = Amx::covers_bytes(shape, input);
+        self.calls.lock().unwrap().push((*shape, covered));
+        Scalar.conv_int8_bytes(
             shape,
             input,
             weight,

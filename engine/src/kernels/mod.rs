@@ -410,6 +410,57 @@ pub trait Kernels: Sync {
         accumulate: Accumulate,
     );
 
+    /// [`conv_int8`](Self::conv_int8) of a pointwise convolution (1x1, stride 1, no
+    /// padding: a matrix product over pixels) whose codes are bytes in one plane
+    /// ([`ByteRows`], 1 to [`MAX_BYTE_CHANNELS`] a pixel): the same exact sums, rounding
+    /// and scaling, so the same bits as `conv_int8` on the bytes split into digits
+    /// (`byte = 128 (byte >> 7) + (byte & 127)`). This default does that split, a few
+    /// pixels at a time; the AMX tiles multiply whole bytes, half the products.
+    ///
+    /// # Panics
+    /// If the shape is not pointwise or a slice is shorter than the contract makes it.
+    #[allow(clippy::too_many_arguments)]
+    fn conv_int8_bytes(
+        &self,
+        shape: &ConvShape,
+        input: &ByteRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        const CHUNK: usize = 4 * MAX_BYTE_CHANNELS;
+        scalar::assert_byte_lengths(shape, input, (weight, weight_scales, bias), output.len());
+        let (channels, out_channels) = (shape.in_channels, shape.out_channels);
+        let (mut high, mut low) = ([0i8; CHUNK], [0i8; CHUNK]);
+        let pixels_per_chunk = CHUNK / channels;
+        let rows = input.bytes.chunks(pixels_per_chunk * channels);
+        let outputs = output.chunks_mut(pixels_per_chunk * out_channels);
+        for (bytes, output) in rows.zip(outputs) {
+            for ((high, low), &byte) in high.iter_mut().zip(low.iter_mut()).zip(bytes) {
+                (*high, *low) = ((byte >> 7) as i8, (byte & 127) as i8);
+            }
+            let pixels = bytes.len() / channels;
+            let chunk = ConvShape::square((1, pixels, channels), out_channels, 1, 1, 0);
+            let digits = DigitRows {
+                high: &high[..bytes.len()],
+                low: &low[..bytes.len()],
+                scale: input.scale,
+                nonnegative: true,
+            };
+            self.conv_int8(
+                &chunk,
+                &digits,
+                weight,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            );
+        }
+    }
+
     /// [`conv_int8`](Self::conv_int8) on the same 15-bit codes kept whole and signed
     /// ([`CodeRows`]: i16, rows padded to whole input-channel quads), for 1-D convolutions
     /// (`in_height == 1`, the U-Net's): the same exact code sums over all taps (exact in i32
@@ -519,6 +570,19 @@ pub const MAX_DIGIT_CHANNELS: usize = 1024;
 /// whole kernel fits i32: `|digit| <= 128`, `|q_w| <= 128`, `16384 x 131072 = 2^31`. A 7x7
 /// kernel over [`MAX_DIGIT_CHANNELS`] inputs has 50,176.
 pub const MAX_DIGIT_TERMS: usize = 131_072;
+
+/// Input channels a pixel of [`ByteRows`] holds at most: the stem's patches have 196, and
+/// `255 x 128 x 256 < 2^24`, so a pixel's exact sum is also exact in f32.
+pub const MAX_BYTE_CHANNELS: usize = 256;
+
+/// Activation codes that are bytes (0..=255) in one plane, with one scale for the whole
+/// input: the int8 stem's patches of image bytes. The matrix tiles multiply whole bytes;
+/// the vector kernels read them as two digit planes ([`DigitRows`]).
+#[derive(Clone, Copy, Debug)]
+pub struct ByteRows<'a> {
+    pub bytes: &'a [u8],
+    pub scale: f32,
+}
 
 /// Activations quantized to signed 15-bit codes ([`ops::quantize_rows_codes`]) with one scale
 /// for the whole input (`value ~ code * scale`), each row (position) padded with zero codes

@@ -2,8 +2,8 @@
 //! implementations are tested against it.
 
 use super::{
-    Accumulate, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, Kernels, MAX_DIGIT_CHANNELS,
-    MAX_DIGIT_TERMS, QUAD, ops,
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, Kernels,
+    MAX_BYTE_CHANNELS, MAX_DIGIT_CHANNELS, MAX_DIGIT_TERMS, QUAD, ops,
 };
 
 /// Output channels accumulated at once in the int8 kernels (an i32 block on the stack): at
@@ -169,6 +169,23 @@ fn assert_int8_inputs(
     assert_eq!(bias.len(), shape.out_channels);
 }
 
+/// The shape and slice lengths [`Kernels::conv_int8_bytes`] promises.
+pub(crate) fn assert_byte_lengths(
+    shape: &ConvShape,
+    input: &ByteRows<'_>,
+    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
+    output_len: usize,
+) {
+    let pointwise = (shape.kernel_height, shape.kernel_width, shape.stride) == (1, 1, 1);
+    assert!(pointwise && shape.padding_height == 0 && shape.padding_width == 0);
+    assert!((1..=MAX_BYTE_CHANNELS).contains(&shape.in_channels));
+    assert_eq!(input.bytes.len(), shape.input_len());
+    assert_eq!(weight.len(), shape.int8_weight_len());
+    assert_eq!(weight_scales.len(), shape.out_channels);
+    assert_eq!(bias.len(), shape.out_channels);
+    assert_eq!(output_len, shape.output_len());
+}
+
 /// The slice lengths [`Kernels::conv_int8_codes`] promises.
 pub(crate) fn assert_code_lengths(
     shape: &ConvShape,
@@ -302,6 +319,33 @@ impl CodeSums for DigitRows<'_> {
             // the high part alone may not, so the arithmetic wraps, which is exact modulo
             // 2^32 and therefore exact for the result.
             *sum = high.wrapping_mul(DIGIT_BASE).wrapping_add(*sum);
+        }
+        sums
+    }
+
+    fn scale(&self) -> f32 {
+        self.scale
+    }
+}
+
+impl CodeSums for ByteRows<'_> {
+    fn code_sums(
+        &self,
+        shape: &ConvShape,
+        weight: &[i8],
+        (row, tap): (usize, usize),
+        block: usize,
+        width: usize,
+    ) -> [i32; INT8_BLOCK] {
+        let in_channels = shape.in_channels;
+        let bytes = &self.bytes[row * in_channels..][..in_channels];
+        let mut sums = [0i32; INT8_BLOCK];
+        for (input, &byte) in bytes.iter().enumerate() {
+            let first = shape.int8_index(tap, input, block);
+            for (output, sum) in sums[..width].iter_mut().enumerate() {
+                // At most MAX_BYTE_CHANNELS products of 255 x 128: exact in i32.
+                *sum += i32::from(byte) * i32::from(weight[first + output * QUAD]);
+            }
         }
         sums
     }
@@ -515,6 +559,21 @@ impl Kernels for Scalar {
         accumulate: Accumulate,
     ) {
         assert_code_lengths(shape, input, (weight, weight_scales, bias), output.len());
+        let parameters = (weight, weight_scales, bias);
+        conv_int8_map(shape, input, parameters, output, accumulate);
+    }
+
+    fn conv_int8_bytes(
+        &self,
+        shape: &ConvShape,
+        input: &ByteRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        assert_byte_lengths(shape, input, (weight, weight_scales, bias), output.len());
         let parameters = (weight, weight_scales, bias);
         conv_int8_map(shape, input, parameters, output, accumulate);
     }

@@ -36,7 +36,8 @@ use core::arch::x86_64::{
     __m512i, _mm256_store_si256, _mm512_add_epi32, _mm512_add_ps, _mm512_and_si512,
     _mm512_cvtepi16_epi8, _mm512_cvtepi32_ps, _mm512_load_si512, _mm512_loadu_ps,
     _mm512_maskz_loadu_epi8, _mm512_maskz_loadu_epi16, _mm512_mul_ps, _mm512_set1_epi16,
-    _mm512_set1_ps, _mm512_slli_epi32, _mm512_srai_epi16, _mm512_store_si512, _mm512_storeu_ps,
+    _mm512_set1_ps, _mm512_setzero_si512, _mm512_slli_epi32, _mm512_srai_epi16, _mm512_store_si512,
+    _mm512_storeu_ps,
 };
 use core::mem::MaybeUninit;
 
@@ -47,10 +48,10 @@ use super::int8::{exact_digits_zmm, round_zmm};
 #[cfg(doc)]
 use crate::kernels::int8_quad_index;
 use crate::kernels::ops::{Activation, DIGIT_BASE};
-use crate::kernels::scalar::{assert_code_lengths, assert_int8_lengths};
+use crate::kernels::scalar::{assert_byte_lengths, assert_code_lengths, assert_int8_lengths};
 use crate::kernels::{
-    Accumulate, CodeRows, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS, MAX_DIGIT_TERMS, QUAD,
-    int8_quad_stride, int8_quads,
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS,
+    MAX_DIGIT_TERMS, QUAD, int8_quad_stride, int8_quads,
 };
 
 /// Rows of every tile: pixels of an activation tile, quads of a weight tile, pixels of a
@@ -85,6 +86,12 @@ impl Amx {
     /// at least one output pixel fits the stack buffer (other shapes go to [`Avx512`]).
     /// Every int8 layer of the model qualifies, the stem's 196-byte patches included.
     pub fn covers(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
+        band(shape, input).is_some()
+    }
+
+    /// [`covers`](Self::covers) for [`Kernels::conv_int8_bytes`]: the stem's patches
+    /// qualify.
+    pub fn covers_bytes(shape: &ConvShape, input: &ByteRows<'_>) -> bool {
         band(shape, input).is_some()
     }
 
@@ -123,6 +130,30 @@ impl Amx {
     ) -> bool {
         let parameters = (weight, weight_scales, bias);
         self.on_tiles(shape, input, parameters, output, accumulate)
+    }
+
+    /// [`Kernels::conv_int8_bytes`] on the tiles, 32 positions' whole bytes a block;
+    /// `false`, with nothing written, when they do not apply (output channels not in whole
+    /// 32-channel blocks). Tests call it to know the tiles ran.
+    ///
+    /// # Panics
+    /// If the shape is not pointwise or a slice is shorter than the contract makes it.
+    pub fn conv_int8_bytes_on_tiles(
+        &self,
+        shape: &ConvShape,
+        input: &ByteRows<'_>,
+        parameters: (&[i8], &[f32], &[f32]),
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) -> bool {
+        let Some(band) = band(shape, input) else {
+            return false;
+        };
+        input.assert_lengths(shape, parameters, output.len());
+        // SAFETY: `self` exists only once AMX, AVX-512 and the permission were detected;
+        // the lengths were asserted and the band planned just above.
+        unsafe { conv(shape, input, parameters, output, accumulate, band) };
+        true
     }
 
     /// [`Kernels::conv_int8_codes`] on the tiles; `false`, with nothing written, when they
@@ -312,18 +343,23 @@ fn band<I: BandInput>(shape: &ConvShape, input: &I) -> Option<Band> {
         && shape.out_channels.is_multiple_of(BLOCK_CHANNELS)
         && partial_fits;
     if applies {
-        Band::plan(shape, channels)
+        Band::plan(shape, channels, I::PLANES)
     } else {
         None
     }
 }
 
 /// Activations the tiles read as two digit planes, `code = 128 high + low`: the trunk's
-/// [`DigitRows`] as they are, the U-Net's signed [`CodeRows`] split while a band is copied.
+/// [`DigitRows`] as they are, the U-Net's signed [`CodeRows`] split while a band is copied;
+/// or as one plane of whole bytes, the stem's [`ByteRows`].
 trait BandInput {
     /// The high digits can be negative (`tdpbssd`, signed by signed bytes); otherwise both
     /// digits are in 0..=127 (`tdpbusd`).
     const SIGNED_HIGH: bool;
+
+    /// Planes a band holds: 2 (the high and low digits), or 1 (bytes, each multiplied
+    /// whole by `tdpbusd`).
+    const PLANES: usize;
 
     /// Channels a pixel of the input holds: the layer's input channels, in whole quads.
     fn channels(shape: &ConvShape) -> usize;
@@ -354,6 +390,7 @@ trait BandInput {
 
 impl BandInput for DigitRows<'_> {
     const SIGNED_HIGH: bool = false;
+    const PLANES: usize = 2;
 
     fn channels(shape: &ConvShape) -> usize {
         shape.in_channels
@@ -390,6 +427,7 @@ impl BandInput for DigitRows<'_> {
 
 impl BandInput for CodeRows<'_> {
     const SIGNED_HIGH: bool = true;
+    const PLANES: usize = 2;
 
     fn channels(shape: &ConvShape) -> usize {
         CodeRows::row_stride(shape.in_channels)
@@ -440,6 +478,42 @@ impl BandInput for CodeRows<'_> {
                 }
             }
         }
+    }
+}
+
+impl BandInput for ByteRows<'_> {
+    const SIGNED_HIGH: bool = false;
+    const PLANES: usize = 1;
+
+    fn channels(shape: &ConvShape) -> usize {
+        shape.in_channels
+    }
+
+    fn digits_fit(&self) -> bool {
+        true
+    }
+
+    fn scale(&self) -> f32 {
+        self.scale
+    }
+
+    fn assert_lengths(&self, shape: &ConvShape, parameters: Parameters<'_>, output_len: usize) {
+        assert_byte_lengths(shape, self, parameters, output_len)
+    }
+
+    /// The bytes as they are, into `high` (one plane: `low` is not written).
+    #[inline(always)]
+    unsafe fn copy_digits(
+        &self,
+        shape: &ConvShape,
+        (first, count): (usize, usize),
+        (high, _): (*mut u8, *mut u8),
+        pitch: usize,
+    ) {
+        let channels = shape.in_channels;
+        let from: &[i8] = bytemuck::cast_slice(&self.bytes[first * channels..][..count * channels]);
+        // SAFETY: the caller's promises.
+        unsafe { copy_pixels(from, channels, high, pitch) };
     }
 }
 
@@ -508,16 +582,21 @@ struct Band {
     /// them (zero).
     image_pixels: usize,
     pitch: usize,
-    /// Tiles of 16 positions covering `rows * grid`.
+    /// [`BandInput::PLANES`].
+    planes: usize,
+    /// Tiles of 16 positions one block of sums covers: 1 (both digits of 16 positions in
+    /// the four sum tiles) or, for one plane of bytes, 2 (32 positions).
+    tiles_per_block: usize,
+    /// Tiles of 16 positions covering `rows * grid`, a whole number of blocks.
     tiles: usize,
 }
 
 impl Band {
     /// The band of `rows` x `columns` output pixels of a convolution whose input pixels
-    /// hold `channels` values.
+    /// hold `channels` values in `planes` planes.
     fn new(
         shape: &ConvShape,
-        channels: usize,
+        (channels, planes): (usize, usize),
         layout: TileLayout,
         (rows, columns): (usize, usize),
     ) -> Self {
@@ -530,7 +609,9 @@ impl Band {
             TileLayout::KernelColumns => (columns, 1, shape.kernel_width, 0),
         };
         let below = (shape.kernel_height - 1) / stride;
-        let tiles = (rows * grid).div_ceil(BLOCK_PIXELS);
+        let tiles_per_block = if planes == 1 { 2 } else { 1 };
+        let block_positions = tiles_per_block * BLOCK_PIXELS;
+        let tiles = (rows * grid).div_ceil(block_positions) * tiles_per_block;
         let row_pixels = grid * step;
         let last_read = step * (tiles * BLOCK_PIXELS - 1) + below * row_pixels + reach;
         let image_rows = rows + below;
@@ -546,6 +627,8 @@ impl Band {
             image_rows,
             image_pixels: (last_read + 1).max(image_rows * row_pixels),
             pitch: step_channels(channels),
+            planes,
+            tiles_per_block,
             tiles,
         }
     }
@@ -563,7 +646,7 @@ impl Band {
     }
 
     const fn bytes(&self) -> usize {
-        2 * self.images() * self.image_bytes()
+        self.planes * self.images() * self.image_bytes()
     }
 
     /// The image and the pixel in it that position 0 of the band reads at tap `(ky, kx)`.
@@ -578,7 +661,8 @@ impl Band {
 
     /// The band plan for `shape`: of the two layouts' plans, the one [`Band::cost`] rates
     /// cheaper; `None` when not even one output pixel fits.
-    fn plan(shape: &ConvShape, channels: usize) -> Option<Band> {
+    fn plan(shape: &ConvShape, channels: usize, planes: usize) -> Option<Band> {
+        let channels = (channels, planes);
         let grid = Band::plan_in(shape, channels, TileLayout::Grid)?;
         Some(
             match Band::plan_in(shape, channels, TileLayout::KernelColumns) {
@@ -591,7 +675,7 @@ impl Band {
     /// The largest band of whole output rows in `layout` that fits [`BAND_BYTES`] (spread
     /// evenly over the map), or of part of one row; `None` when not even one output pixel
     /// fits.
-    fn plan_in(shape: &ConvShape, channels: usize, layout: TileLayout) -> Option<Band> {
+    fn plan_in(shape: &ConvShape, channels: (usize, usize), layout: TileLayout) -> Option<Band> {
         let (out_height, out_width) = (shape.out_height(), shape.out_width());
         let band = |rows, columns| Band::new(shape, channels, layout, (rows, columns));
         let fits = |rows, columns| band(rows, columns).bytes() <= BAND_BYTES;
@@ -621,7 +705,7 @@ impl Band {
     fn bands(self, shape: &ConvShape) -> impl Iterator<Item = (Band, (usize, usize))> {
         let (out_height, out_width) = (shape.out_height(), shape.out_width());
         // The pitch is the channels rounded up to whole steps: `Band::new` rounds it to itself.
-        let channels = self.pitch;
+        let channels = (self.pitch, self.planes);
         (0..out_height).step_by(self.rows).flat_map(move |top| {
             (0..out_width).step_by(self.columns).map(move |left| {
                 let size = (
@@ -644,7 +728,8 @@ impl Band {
         let taps = shape.kernel_height * shape.kernel_width;
         let steps = taps * self.pitch / CHANNELS_PER_STEP;
         let blocks = shape.out_channels / BLOCK_CHANNELS;
-        let products_per_tile = blocks * steps * 4;
+        // Four products a step for each block: 16 positions' two digits, or 32 positions.
+        let products_per_tile = blocks * steps * 4 / self.tiles_per_block;
         self.bands(shape)
             .map(|(band, _)| {
                 band.tiles * products_per_tile * PRODUCT_CYCLES
@@ -689,8 +774,9 @@ unsafe fn conv<I: BandInput>(
     let out_width = shape.out_width();
     let taps = shape.kernel_height * shape.kernel_width;
     let channels = I::channels(shape);
-    // The i32 bound takes digits of at most 127 in magnitude.
-    let i32_exact = !I::SIGNED_HIGH && taps * channels <= MAX_DIGIT_CHANNELS;
+    // The i32 bound takes digits of at most 127 in magnitude; a byte's sums are whole
+    // (`MAX_BYTE_CHANNELS`).
+    let i32_exact = I::PLANES == 1 || (!I::SIGNED_HIGH && taps * channels <= MAX_DIGIT_CHANNELS);
     let partial = !channels.is_multiple_of(CHANNELS_PER_STEP);
     let mut band = BandBuffer([MaybeUninit::uninit(); BAND_BYTES]);
     let mut packed = [TileBuffer::UNWRITTEN; 2 * MAX_PARTIAL_TAPS];
@@ -716,7 +802,7 @@ unsafe fn conv<I: BandInput>(
                 // SAFETY: the block's channels and every tap are inside `weight`.
                 unsafe { pack_partial_step(shape, channels, weight, channel, &mut packed) };
             }
-            for tile in 0..geometry.tiles {
+            for tile in (0..geometry.tiles).step_by(geometry.tiles_per_block) {
                 let first = tile * BLOCK_PIXELS;
                 // SAFETY: the band holds every pixel the tile reads (`Band`); the block's
                 // weights are inside `weight`.
@@ -787,17 +873,20 @@ unsafe fn fill_band<I: BandInput>(
             let (first, end) = (inside(0), inside(in_width as isize));
             // SAFETY: the images lie inside the buffer (`geometry.bytes() <= BAND_BYTES`).
             let high = unsafe { base.add(image * geometry.image_bytes()) };
-            let low = unsafe { high.add(low_images) };
+            // With one plane this lies past the band and is never written (nor read).
+            let low = high.wrapping_add(low_images);
             for image_row in 0..geometry.image_rows {
                 let padded_row = (top + image_row) * geometry.stride + phase;
                 let in_row = padded_row as isize - shape.padding_height as isize;
                 let at = image_row * row_bytes;
-                // SAFETY (both): the row lies inside each image.
-                let to = unsafe { (high.add(at), low.add(at)) };
+                // SAFETY: the row lies inside the image (and inside the low digits' image
+                // when there is one).
+                let to = unsafe { (high.add(at), low.wrapping_add(at)) };
+                let planes = [to.0, to.1];
+                let planes = &planes[..geometry.planes];
                 if !(0..in_height as isize).contains(&in_row) || first == end {
-                    unsafe {
-                        to.0.write_bytes(0, row_bytes);
-                        to.1.write_bytes(0, row_bytes);
+                    for to in planes {
+                        unsafe { to.write_bytes(0, row_bytes) };
                     }
                     continue;
                 }
@@ -805,35 +894,32 @@ unsafe fn fill_band<I: BandInput>(
                 let first_pixel = in_row as usize * in_width + first_column;
                 // SAFETY: the row lies inside each image; the inside pixels are the input's.
                 unsafe {
-                    for to in [to.0, to.1] {
+                    for to in planes {
                         to.write_bytes(0, first * pitch);
                         to.add(end * pitch)
                             .write_bytes(0, (row_pixels - end) * pitch);
                     }
-                    let rows = (to.0.add(first * pitch), to.1.add(first * pitch));
+                    let rows = (to.0.add(first * pitch), to.1.wrapping_add(first * pitch));
                     if column_step == 1 {
                         input.copy_digits(shape, (first_pixel, end - first), rows, pitch);
                     } else {
                         for pixel in 0..end - first {
                             let at = pixel * pitch;
                             let from = first_pixel + pixel * column_step;
-                            input.copy_digits(
-                                shape,
-                                (from, 1),
-                                (rows.0.add(at), rows.1.add(at)),
-                                pitch,
-                            );
+                            let to = (rows.0.add(at), rows.1.wrapping_add(at));
+                            input.copy_digits(shape, (from, 1), to, pitch);
                         }
                     }
                 }
             }
             let copied = geometry.image_rows * row_bytes;
-            // SAFETY: the slack lies inside each image.
-            unsafe {
-                high.add(copied)
-                    .write_bytes(0, geometry.image_bytes() - copied);
-                low.add(copied)
-                    .write_bytes(0, geometry.image_bytes() - copied);
+            for image in [high, low].into_iter().take(geometry.planes) {
+                // SAFETY: the slack lies inside each image.
+                unsafe {
+                    image
+                        .add(copied)
+                        .write_bytes(0, geometry.image_bytes() - copied)
+                };
             }
         }
     }
@@ -954,7 +1040,11 @@ unsafe fn tile_sums<I: BandInput>(
             // SAFETY (all below): `Band` puts every pixel 16 positions read inside the
             // image, and the block's quads of every step inside `weight`.
             let high = unsafe { band.add(image * geometry.image_bytes() + pixel * pitch) };
-            let low = unsafe { high.add(low_images) };
+            // One plane of bytes: the "low" tile is the next 16 positions.
+            let low = match geometry.planes {
+                1 => unsafe { high.add(BLOCK_PIXELS * row_step) },
+                _ => unsafe { high.add(low_images) },
+            };
             for step in 0..full_steps {
                 let channels = step * CHANNELS_PER_STEP;
                 let rows = unsafe { weights.add((tap * quads + step * ROWS) * quad_stride) };
@@ -1113,7 +1203,7 @@ impl Epilogue<'_> {
         let channel = block.channel;
         let band = &block.band;
         let (mut y, mut x) = (block.first / band.grid, block.first % band.grid);
-        for row in 0..BLOCK_PIXELS {
+        for row in 0..band.tiles_per_block * BLOCK_PIXELS {
             if y >= band.rows {
                 break;
             }
@@ -1128,12 +1218,22 @@ impl Epilogue<'_> {
                 continue;
             }
             let out = &mut output[pixel * self.out_channels + channel..][..BLOCK_CHANNELS];
-            let at = row * ROW_BYTES;
+            let at = row % ROWS * ROW_BYTES;
             for (vector, out) in out.chunks_exact_mut(SUM_COLUMNS).enumerate() {
                 // SAFETY: AVX-512F; each sum buffer row is 64 aligned bytes.
                 unsafe {
-                    let high = _mm512_load_si512(sums[vector].as_ptr().add(at).cast());
-                    let low = _mm512_load_si512(sums[2 + vector].as_ptr().add(at).cast());
+                    let (high, low) = if band.planes == 1 {
+                        // Whole sums, the second tile's positions in the last two.
+                        let sum = &sums[row / ROWS * 2 + vector];
+                        (
+                            _mm512_setzero_si512(),
+                            _mm512_load_si512(sum.as_ptr().add(at).cast()),
+                        )
+                    } else {
+                        let high = _mm512_load_si512(sums[vector].as_ptr().add(at).cast());
+                        let low = _mm512_load_si512(sums[2 + vector].as_ptr().add(at).cast());
+                        (high, low)
+                    };
                     self.write_group((high, low), channel + vector * SUM_COLUMNS, out);
                 }
             }
@@ -1229,6 +1329,30 @@ impl Kernels for Amx {
         let parameters = (weight, weight_scales, bias);
         if !self.conv_int8_pixels_on_tiles(shape, input, parameters, pixels, output) {
             crate::kernels::each_pixel(self.avx512, shape, input, parameters, pixels, output)
+        }
+    }
+
+    fn conv_int8_bytes(
+        &self,
+        shape: &ConvShape,
+        input: &ByteRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let parameters = (weight, weight_scales, bias);
+        if !self.conv_int8_bytes_on_tiles(shape, input, parameters, output, accumulate) {
+            self.avx512.conv_int8_bytes(
+                shape,
+                input,
+                weight,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            )
         }
     }
 
