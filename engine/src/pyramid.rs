@@ -12,7 +12,7 @@ use crate::plan::FrameLayout;
 use crate::weights::{Conv, ConvNorm, PyramidWeights, Weight};
 
 /// Four activation buffers the residual blocks rotate through; the first holds the image
-/// (normalized, or as padded digit planes for an int8 stem).
+/// (normalized, or its padded bytes for an int8 stem).
 pub struct TrunkScratch<'a> {
     pub first: &'a mut [f32],
     /// The stem's output lives here first; afterwards it is split into the other three.

@@ -551,11 +551,12 @@ pub enum TileLayout {
 /// Where the tiles of one band read.
 ///
 /// A band is `rows` x `columns` output pixels. Its input is copied, zero padding included,
-/// into `phases x column_images` images per digit plane. Image `(r, c)` holds the padded
-/// input rows `band_top * stride + j * stride + r`; each of its rows is `row_pixels()`
-/// pixels of `pitch` bytes (whole 64-channel steps). An output pixel is a position
-/// `q = row * grid + column` of the band, and at kernel tap `(ky, kx)` it reads pixel
-/// `step * q + (ky / stride) * row_pixels() + offset` of image `(ky % stride, c)`:
+/// into `phases x column_images` images per plane (two digit planes, or one of bytes).
+/// Image `(r, c)` holds the padded input rows `band_top * stride + j * stride + r`; each of
+/// its rows is `row_pixels()` pixels of `pitch` bytes (whole 64-channel steps). An output
+/// pixel is a position `q = row * grid + column` of the band, and at kernel tap `(ky, kx)`
+/// it reads pixel `step * q + (ky / stride) * row_pixels() + offset` of image
+/// `(ky % stride, c)`:
 /// - [`TileLayout::Grid`]: one column image, every padded column from the band's first
 ///   (`step = stride`, `c = 0`, `offset = kx`); the positions `column >= columns` are
 ///   computed and dropped;
