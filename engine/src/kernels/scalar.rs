@@ -337,17 +337,9 @@ impl CodeSums for ByteRows<'_> {
         block: usize,
         width: usize,
     ) -> [i32; INT8_BLOCK] {
-        let in_channels = shape.in_channels;
-        let bytes = &self.bytes[row * in_channels..][..in_channels];
-        let mut sums = [0i32; INT8_BLOCK];
-        for (input, &byte) in bytes.iter().enumerate() {
-            let first = shape.int8_index(tap, input, block);
-            for (output, sum) in sums[..width].iter_mut().enumerate() {
-                // At most MAX_BYTE_CHANNELS products of 255 x 128: exact in i32.
-                *sum += i32::from(byte) * i32::from(weight[first + output * QUAD]);
-            }
-        }
-        sums
+        // One plane, read as the digit planes are: at most MAX_BYTE_CHANNELS products of
+        // 255 x 128, exact in i32.
+        digit_sums(shape, self.bytes, weight, (row, tap), block, width)
     }
 
     fn scale(&self) -> f32 {
@@ -429,10 +421,10 @@ pub(crate) fn scaled_row_sum(sum: i64, scale: f32, row_scale: f32, base: f32) ->
 const DIGIT_BASE: i32 = ops::DIGIT_BASE as i32;
 
 /// The exact sums `sum_c digit[row, c] q_w[tap, c, o]` for the `width` output channels from
-/// `block`, one digit plane.
-fn digit_sums(
+/// `block`, one digit plane (i8 digits, or u8 bytes).
+fn digit_sums<Digit: Copy + Into<i16>>(
     shape: &ConvShape,
-    plane: &[i8],
+    plane: &[Digit],
     weight: &[i8],
     (row, tap): (usize, usize),
     block: usize,
@@ -451,15 +443,15 @@ fn digit_sums(
         value
             .iter_mut()
             .zip(values)
-            .for_each(|(v, &q)| *v = q as i16);
+            .for_each(|(v, &q)| *v = q.into());
         let first = shape.int8_index(tap, quad * QUAD, block);
         let weights = &weight[first..][..width * QUAD];
         for (partial, w) in partials
             .chunks_exact_mut(QUAD)
             .zip(weights.chunks_exact(QUAD))
         {
-            // Any i8 x i8 product fits i16 (at most 128 x 128 = 16384): 16-bit multiplies
-            // exist on every SIMD ISA, 32-bit ones not on baseline x86-64 (SSE2).
+            // Any i8 or u8 by i8 product fits i16 (at most 255 x 128 = 32640): 16-bit
+            // multiplies exist on every SIMD ISA, 32-bit ones not on baseline x86-64 (SSE2).
             for ((partial, &w), &value) in partial.iter_mut().zip(w).zip(&value) {
                 *partial += (value * w as i16) as i32;
             }
