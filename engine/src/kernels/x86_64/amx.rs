@@ -914,7 +914,7 @@ unsafe fn fill_band<I: BandInput>(
                 }
             }
             let copied = geometry.image_rows * row_bytes;
-            for image in [high, low].into_iter().take(geometry.planes) {
+            for &image in &[high, low][..geometry.planes] {
                 // SAFETY: the slack lies inside each image.
                 unsafe {
                     image
