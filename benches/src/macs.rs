@@ -13,9 +13,9 @@
 //! time-embedding half (and the step encoder before it) depends only on the step, so the
 //! weights tool precomputes it per step (`film.table`); per step only the `[2 out, g]` part
 //! runs. [`Stage::Film`] counts that part; [`torch_only_per_step`] the rest. And the
-//! transposed convolutions run as the tool lowers them, ordinary convolutions of 3 taps and
-//! twice the output channels (a third of their weights zero): counted as such, their
-//! excess over PyTorch's count is [`engine_only_per_step`].
+//! transposed convolutions run as the tool lowers them, ordinary convolutions of 2 taps and
+//! twice the output channels at one more position than their input: counted as such, their
+//! excess over PyTorch's count (that extra position) is [`engine_only_per_step`].
 
 use scdp_engine::ModelConfig;
 use scdp_engine::config::{PYRAMID_LEVELS, UNET_LEVELS};
@@ -245,10 +245,10 @@ pub fn step_layers(config: &ModelConfig) -> Vec<Layer> {
         let name = |block: usize| format!("up.{index}.{block}");
         residual_block(&mut layers, stage, name(0), length, 2 * below, channels);
         residual_block(&mut layers, stage, name(1), length, channels, channels);
-        // ConvTranspose1d(4, stride 2), lowered: 3 taps over its input positions, to twice
-        // the channels.
+        // ConvTranspose1d(4, stride 2), lowered: 2 taps over its input positions, to twice
+        // the channels, at one more position than the input has.
         let name = format!("up.{index}.upsample");
-        layers.push(conv1d(stage, name, length, 3, channels, 2 * channels));
+        layers.push(conv1d(stage, name, length + 1, 2, channels, 2 * channels));
     }
     let action_dim = config.action_dim as usize;
     layers.push(conv1d(
@@ -297,14 +297,14 @@ pub fn torch_only_per_step(config: &ModelConfig) -> u64 {
 }
 
 /// MACs per step that the engine runs and PyTorch's module does not: the lowered transposed
-/// convolutions' `length x 3 x C x 2C` against PyTorch's `length x 4 x C x C`.
+/// convolutions' `(length + 1) x 2 x C x 2C` against PyTorch's `length x 4 x C x C`, the
+/// extra position's `4 C^2` (its even half and the odd half of position 0 are discarded).
 pub fn engine_only_per_step(config: &ModelConfig) -> u64 {
     (0..UNET_LEVELS - 1)
         .map(|index| {
             let level = UNET_LEVELS - 2 - index;
-            let length = (config.horizon >> (level + 1)) as u64;
             let channels = config.down_dims[level] as u64;
-            length * channels * channels * (3 * 2 - 4)
+            4 * channels * channels
         })
         .sum()
 }

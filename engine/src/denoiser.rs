@@ -4,7 +4,7 @@
 use crate::config::{ModelConfig, UNET_LEVELS};
 use crate::kernels::ops::{self, Activation};
 use crate::kernels::{self, Accumulate, Activations, ConvShape, Kernels, QuantizeScratch};
-use crate::weights::{Conv, DenoiserWeights, Norm, ResidualBlock};
+use crate::weights::{Conv, DenoiserWeights, Norm, ResidualBlock, UPSAMPLE_TAPS};
 
 /// Diffusion Policy builds the head's Conv1dBlock without passing `n_groups`, so it always
 /// has its default of 8 groups.
@@ -150,9 +150,10 @@ impl Context<'_> {
     }
 
     /// ConvTranspose1d(4, stride 2, padding 1): `[length, channels]` -> `[2 length, channels]`.
-    /// The tool lowered it to a convolution of 3 taps (padding 1) to `2 channels` whose
-    /// position `j` holds outputs `2 j` and `2 j + 1` side by side: `[length, 2 channels]`
-    /// is `[2 length, channels]`.
+    /// The tool lowered it to a convolution of 2 taps (padding 1) to `2 channels` whose
+    /// position `p` holds output `2 p` then output `2 p - 1`: its `length + 1` positions,
+    /// once each odd half moves up a position, are `[length, 2 channels]`, which is
+    /// `[2 length, channels]`.
     fn upsample(
         &mut self,
         conv: &Conv<'_>,
@@ -161,8 +162,13 @@ impl Context<'_> {
         input: &[f32],
         output: &mut [f32],
     ) {
-        let shape = ConvShape::sequence(length, channels, 2 * channels, 3, 1, 1);
+        let shape = ConvShape::sequence(length, channels, 2 * channels, UPSAMPLE_TAPS, 1, 1);
         self.convolve(&shape, conv, input, output, Accumulate::Overwrite);
+        let wide = 2 * channels;
+        for position in 0..length {
+            let (this, next) = output[position * wide..][..2 * wide].split_at_mut(wide);
+            this[channels..].copy_from_slice(&next[channels..]);
+        }
     }
 }
 

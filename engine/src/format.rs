@@ -13,8 +13,9 @@ pub const MAGIC: [u8; 8] = *b"SCDPWTS\0";
 /// 2-D convolutions are stored in input-channel quads; version 3: those of 1-D convolutions
 /// too; version 4: the quads in blocks of 64 output channels; version 5: the U-Net's
 /// transposed convolutions lowered to ordinary convolutions, stored like them (int8 where
-/// the tool chooses; docs/FORMAT.md).
-pub const VERSION: u32 = 5;
+/// the tool chooses; docs/FORMAT.md); version 6: those lowered to 2 taps, without the third
+/// tap's zeros.
+pub const VERSION: u32 = 6;
 /// Every section and tensor starts at a multiple of this, so SIMD loads can be aligned.
 pub const ALIGN: usize = 64;
 pub const HEADER_BYTES: usize = 64;

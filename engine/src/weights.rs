@@ -8,7 +8,7 @@
 //! Layouts are the engine's, not PyTorch's (the tool packs them offline):
 //! - 2-D convolutions: `[kh, kw, in, out]`, feature maps `[H, W, C]`;
 //! - 1-D convolutions: `[k, in, out]`, sequences `[T, C]`; the transposed convolutions
-//!   lowered to ordinary ones of 3 taps and twice the output channels;
+//!   lowered to ordinary ones of 2 taps and twice the output channels;
 //! - FiLM: the global-condition part of the linear layer `[2 out, global_cond_dim]`, and the
 //!   time-embedding part with the bias folded in, precomputed per inference step `[steps, 2 out]`;
 //! - BatchNorm does not appear: it is folded into the convolution before it.
@@ -216,8 +216,9 @@ pub struct DenoiserWeights<'w> {
     pub downsample: [Conv<'w>; UNET_LEVELS - 1],
     pub mid: [ResidualBlock<'w>; 2],
     pub up: [[ResidualBlock<'w>; 2]; UNET_LEVELS - 1],
-    /// The transposed convolutions, as the tool lowers them (docs/FORMAT.md): 3 taps,
-    /// `channels` -> `2 channels`, each output position the two outputs it upsamples to.
+    /// The transposed convolutions, as the tool lowers them (docs/FORMAT.md):
+    /// [`UPSAMPLE_TAPS`] taps, `channels` -> `2 channels`, position `p` holding output `2 p`
+    /// and output `2 p - 1`.
     pub upsample: [Conv<'w>; UNET_LEVELS - 1],
     pub final_conv: Conv<'w>,
     pub final_norm: Norm<'w>,
@@ -235,6 +236,9 @@ pub struct Normalizer<'w> {
 
 /// Per inference step: `sqrt(a_t), sqrt(1 - a_t), sqrt(a_prev), sqrt(1 - a_prev)`.
 pub const SCHEDULE_COLUMNS: usize = 4;
+
+/// Taps of a lowered transposed convolution: inputs `p - 1` and `p` of output position `p`.
+pub const UPSAMPLE_TAPS: usize = 2;
 
 #[derive(Clone, Copy, Debug, Default)]
 pub struct ModelWeights<'w> {
@@ -456,7 +460,7 @@ impl<'w> ModelWeights<'w> {
             denoiser.upsample[index] = conv(
                 source,
                 format_args!("unet.up.{index}.upsample"),
-                &[3, channels, 2 * channels],
+                &[UPSAMPLE_TAPS, channels, 2 * channels],
             )?;
         }
         let kernel = config.kernel_size as usize;

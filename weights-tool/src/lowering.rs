@@ -535,15 +535,16 @@ pub fn ddim_table(config: &ModelConfig) -> Vec<f32> {
 }
 
 /// ConvTranspose1d(kernel 4, stride 2, padding 1) of `channels = bias.len()` channels in and
-/// out (PyTorch's weight `[channels, channels, 4]` and bias) as the ordinary convolution of 3
-/// taps (padding 1) and `2 channels` outputs the engine runs: weight `[3, channels,
-/// 2 channels]`, the bias twice. Output `t` of the transposed convolution takes input `s`
-/// through tap `t + 1 - 2 s`, so output `2 j` is tap 3 on input `j - 1` plus tap 1 on input
-/// `j`, and output `2 j + 1` tap 2 on input `j` plus tap 0 on input `j + 1`. Position `j` of
-/// the lowered convolution holds both, even then odd: its `[length, 2 channels]` output is
-/// the transposed convolution's `[2 length, channels]`. A third of it is zeros: 1.5 times
-/// the transposed convolution's weights, but in int8 0.375 times its f32 bytes, and the
-/// U-Net's int8 kernels run it like any other layer.
+/// out (PyTorch's weight `[channels, channels, 4]` and bias) as the ordinary convolution the
+/// engine runs: 2 taps, padding 1, `2 channels` outputs, weight `[2, channels, 2 channels]`,
+/// the bias twice. Output `t` of the transposed convolution takes input `s` through tap
+/// `t + 1 - 2 s`, so output `2 j` is tap 3 on input `j - 1` plus tap 1 on input `j`, and
+/// output `2 j + 1` is tap 2 on input `j` plus tap 0 on input `j + 1`. Position `p` of the
+/// lowered convolution reads inputs `p - 1` and `p`, and holds output `2 p` in its first
+/// `channels` and output `2 (p - 1) + 1` in its last: `length + 1` positions, of which the
+/// engine keeps the even half of positions `0..length` and the odd half of `1..=length`.
+/// Every weight is the transposed convolution's, none zero (format version 5 had a third tap
+/// per position, a third of the kernel zeros, streamed every denoising step).
 pub fn lower_upsample(weight: &[f32], bias: &[f32]) -> (Vec<f32>, Vec<f32>) {
     let channels = bias.len();
     assert_eq!(
@@ -552,17 +553,18 @@ pub fn lower_upsample(weight: &[f32], bias: &[f32]) -> (Vec<f32>, Vec<f32>) {
         "ConvTranspose1d weight"
     );
     let wide = 2 * channels;
-    let mut lowered = vec![0.0; 3 * channels * wide];
+    let mut lowered = vec![0.0; 2 * channels * wide];
     for input in 0..channels {
         for output in 0..channels {
             let tap = |k: usize| weight[(input * channels + output) * 4 + k];
             let at = |lowered_tap: usize, column: usize| {
                 (lowered_tap * channels + input) * wide + column
             };
+            // Tap 0 reads input `p - 1`, tap 1 input `p`.
             lowered[at(0, output)] = tap(3);
             lowered[at(1, output)] = tap(1);
-            lowered[at(1, channels + output)] = tap(2);
-            lowered[at(2, channels + output)] = tap(0);
+            lowered[at(0, channels + output)] = tap(2);
+            lowered[at(1, channels + output)] = tap(0);
         }
     }
     (lowered, [bias, bias].concat())

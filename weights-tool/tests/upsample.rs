@@ -1,6 +1,7 @@
-//! The U-Net's transposed convolutions, as the tool lowers them (3 taps, twice the output
-//! channels), run through the engine's convolution contract, give PyTorch's
-//! ConvTranspose1d(kernel 4, stride 2, padding 1), written out from its definition.
+//! The U-Net's transposed convolutions, as the tool lowers them (2 taps, padding 1, twice
+//! the output channels, one position more than the input), run through the engine's
+//! convolution contract, give PyTorch's ConvTranspose1d(kernel 4, stride 2, padding 1),
+//! written out from its definition.
 
 use scdp_engine::kernels::scalar::Scalar;
 use scdp_engine::kernels::{Accumulate, ConvShape, Kernels};
@@ -47,8 +48,13 @@ fn lowered_upsample_is_pytorch_conv_transpose() {
         }
 
         let (lowered, wide_bias) = lower_upsample(&weight, &bias);
-        let shape = ConvShape::sequence(length, channels, 2 * channels, 3, 1, 1);
+        let shape = ConvShape::sequence(length, channels, 2 * channels, 2, 1, 1);
         assert_eq!(lowered.len(), shape.weight_len());
+        assert_eq!(shape.out_width(), length + 1);
+        assert!(
+            lowered.iter().all(|&value| value != 0.0),
+            "every lowered weight is one of the transposed convolution's"
+        );
         let input: Vec<f32> = (0..length * channels)
             .map(|index| input_ct[(index % channels) * length + index / channels])
             .collect();
@@ -61,16 +67,24 @@ fn lowered_upsample_is_pytorch_conv_transpose() {
             &mut output,
             Accumulate::Overwrite,
         );
-        // `[length, 2 channels]` read as `[2 length, channels]`. Each output sums at most
-        // 2 channels + 1 nonzero terms (the zero weights add exactly); each product and each
-        // addition rounds by at most eps/2 of the sum of magnitudes, so (2 channels + 2) eps
-        // of it is twice that bound.
-        for (index, (&found, &exact)) in output.iter().zip(&expected).enumerate() {
-            let tolerance = (2 * channels + 2) as f64 * f32::EPSILON as f64 * magnitude[index];
-            assert!(
-                (found as f64 - exact).abs() <= tolerance,
-                "({length}, {channels}) output {index}: {found} vs {exact}"
-            );
+        // Output `2 j` is the first half of position `j`, output `2 j + 1` the second half
+        // of position `j + 1`. Each sums at most 2 channels + 1 terms; each product and
+        // each addition rounds by at most eps/2 of the sum of magnitudes, so
+        // (2 channels + 2) eps of it is twice that bound.
+        for t in 0..2 * length {
+            for o in 0..channels {
+                let at = match t % 2 {
+                    0 => (t / 2) * 2 * channels + o,
+                    _ => (t / 2 + 1) * 2 * channels + channels + o,
+                };
+                let (found, exact) = (output[at], expected[t * channels + o]);
+                let tolerance =
+                    (2 * channels + 2) as f64 * f32::EPSILON as f64 * magnitude[t * channels + o];
+                assert!(
+                    (found as f64 - exact).abs() <= tolerance,
+                    "({length}, {channels}) output ({t}, {o}): {found} vs {exact}"
+                );
+            }
         }
     }
 }
