@@ -607,8 +607,8 @@ pub const INT8_KEEP_F32: &[(&str, &str)] = &[
     ),
     (
         "unet.up.1.upsample.weight",
-        "the last transposed convolution (0.4 MB in f32): int8, it took panda/edge's max action \
-         error to 0.026, over the 0.02 floor (docs/QUANTIZATION.md)",
+        "the last transposed convolution (0.26 MB in f32): int8, it took panda/edge's max action \
+         error to 0.029, over the 0.02 floor (docs/QUANTIZATION.md)",
     ),
 ];
 
