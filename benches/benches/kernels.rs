@@ -9,9 +9,7 @@ use std::time::Duration;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use scdp_engine::Backend;
-use scdp_engine::kernels::{
-    Accumulate, ConvShape, DigitRows, Int8Layout, Kernels, pack_int8, select,
-};
+use scdp_engine::kernels::{Accumulate, ConvShape, DigitRows, Kernels, pack_int8_quads, select};
 use weights_tool::writer::AlignedBytes;
 
 /// `(name, shape)` of the distinct int8 convolutions of one panda frame.
@@ -82,8 +80,7 @@ fn benches(c: &mut Criterion) {
         // Aligned too, as a weights file places every tensor.
         let mut packed_bytes = AlignedBytes::zeroed(shape.int8_weight_len());
         let packed: &mut [i8] = bytemuck::cast_slice_mut(packed_bytes.as_mut_slice());
-        let (input, output) = (shape.in_channels, shape.out_channels);
-        pack_int8(Int8Layout::Tiles, &weight, input, output, packed);
+        pack_int8_quads(&weight, shape.in_channels, shape.out_channels, packed);
         let packed: &[i8] = packed;
         let weight_scales = vec![1e-3f32; shape.out_channels];
         let bias = vec![0.5f32; shape.out_channels];

@@ -14,9 +14,8 @@ pub const MAGIC: [u8; 8] = *b"SCDPWTS\0";
 /// too; version 4: the quads in blocks of 64 output channels; version 5: the U-Net's
 /// transposed convolutions lowered to ordinary convolutions, stored like them (int8 where
 /// the tool chooses; docs/FORMAT.md); version 6: those lowered to 2 taps, without the third
-/// tap's zeros; version 7: the int8 kernels of 2-D convolutions in tiles
-/// ([`int8_tile_index`](crate::kernels::int8_tile_index)).
-pub const VERSION: u32 = 7;
+/// tap's zeros.
+pub const VERSION: u32 = 6;
 /// Every section and tensor starts at a multiple of this, so SIMD loads can be aligned.
 pub const ALIGN: usize = 64;
 pub const HEADER_BYTES: usize = 64;
@@ -366,7 +365,7 @@ impl<'w> WeightsFile<'w> {
         let offset = usize::try_from(u64_at(row, 80)).map_err(|_| bad)?;
         let byte_len = usize::try_from(u64_at(row, 88)).map_err(|_| bad)?;
         // An int8 convolution kernel is stored in input-channel quads, `in` padded to a
-        // multiple of 4 (crate::kernels::int8_quad_index, int8_tile_index).
+        // multiple of 4 (crate::kernels::int8_quad_index).
         let stored = match dtype {
             DType::I8 => crate::kernels::int8_stored_elements(&dims[..rank]).ok_or(bad)?,
             DType::F32 => elements,

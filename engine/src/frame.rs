@@ -14,11 +14,11 @@ pub const STEM_STRIDE: usize = 2;
 pub const STEM_PADDING: usize = 3;
 
 /// Values of one stem patch: each of the 49 taps a quad (the pixel's three bytes and a
-/// zero). The tool stores the stem's int8 kernel as the weight matrix of a 1x1 convolution
-/// over these patches ([`int8_tile_index`] of 196 inputs), which the engine runs with no
-/// repacking.
+/// zero). An int8 kernel over three channels stores one quad a tap ([`int8_quad_index`]),
+/// so the stem's int8 kernel, as stored, is also the weight matrix of a 1x1 convolution
+/// over these patches, with no repacking.
 ///
-/// [`int8_tile_index`]: crate::kernels::int8_tile_index
+/// [`int8_quad_index`]: crate::kernels::int8_quad_index
 pub const PATCH_CHANNELS: usize = STEM_KERNEL * STEM_KERNEL * QUAD;
 
 /// `(rows, columns)` of the image with the stem's zero padding around it.

@@ -10,9 +10,7 @@ use scdp_engine::kernels::x86_64::amx::{Amx, TileLayout};
 /// Elsewhere no tile layout runs: `check_on_tiles` reports `None`.
 #[cfg(not(target_arch = "x86_64"))]
 type TileLayout = ();
-use scdp_engine::kernels::{
-    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Int8Layout, Kernels,
-};
+use scdp_engine::kernels::{Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels};
 
 struct Lcg(u64);
 
@@ -409,8 +407,7 @@ fn int8_convolution_sums_exactly_over_the_kernel_then_scales() {
         let scale = 0.01 + rng.next().abs();
         let weight = random_i8(&mut rng, shape.weight_len());
         let mut packed = vec![1i8; shape.int8_weight_len()];
-        let tiles = Int8Layout::Tiles;
-        scdp_engine::kernels::pack_int8(tiles, &weight, in_channels, out_channels, &mut packed);
+        scdp_engine::kernels::pack_int8_quads(&weight, in_channels, out_channels, &mut packed);
         let weight_scales: Vec<f32> = (0..out_channels)
             .map(|_| 0.001 + rng.next().abs() * 0.01)
             .collect();
@@ -627,14 +624,10 @@ fn int8_code_convolution_sums_exactly_over_the_kernel_then_scales() {
         let planes = digit_planes(codes);
         let digits = DigitRows::from_planes(&planes, *scale, false);
         let mut from_digits = vec![f32::NAN; shape.output_len()];
-        // `conv_int8` reads its kernel in the tile layout.
-        let mut tiles = vec![0i8; shape.int8_weight_len()];
-        let layout = Int8Layout::Tiles;
-        scdp_engine::kernels::pack_int8(layout, weight, in_channels, out_channels, &mut tiles);
         Scalar.conv_int8(
             &shape,
             &digits,
-            &tiles,
+            &code_case.packed,
             weight_scales,
             bias,
             &mut from_digits,
@@ -1104,13 +1097,12 @@ impl Int8Case {
         output
     }
 
-    /// The kernel in the tile layout and the codes as digit planes.
+    /// The kernel in the quad layout and the codes as digit planes.
     fn packed(&self) -> (Vec<i8>, Vec<i8>) {
         let shape = &self.shape;
         let mut packed = vec![0i8; shape.int8_weight_len()];
         let channels = (shape.in_channels, shape.out_channels);
-        let tiles = Int8Layout::Tiles;
-        scdp_engine::kernels::pack_int8(tiles, &self.weight, channels.0, channels.1, &mut packed);
+        scdp_engine::kernels::pack_int8_quads(&self.weight, channels.0, channels.1, &mut packed);
         (packed, digit_planes(&self.values))
     }
 }
@@ -1356,8 +1348,7 @@ fn byte_convolution_equals_the_digit_convolution_on_every_backend() {
         weight[0] = -128;
         weight[1] = 127;
         let mut packed = vec![0i8; shape.int8_weight_len()];
-        let tiles = Int8Layout::Tiles;
-        scdp_engine::kernels::pack_int8(tiles, &weight, in_channels, out_channels, &mut packed);
+        scdp_engine::kernels::pack_int8_quads(&weight, in_channels, out_channels, &mut packed);
         let weight_scales: Vec<f32> = (0..out_channels)
             .map(|_| 0.001 + rng.next().abs())
             .collect();
@@ -1966,23 +1957,30 @@ fn split_activation_digits_reconstruct_the_input() {
     assert!(scale.is_nan() && high == [0, 0] && low == [0, 0]);
 }
 
-/// Walks every weight `(tap, input, output)` of each `(taps, in, out)` kernel shape through
-/// `index` (a layout), asserting each lands on its own place inside the packed length and no
-/// place is left over, and hands each to `check` with its place.
-fn each_weight_once(
-    shapes: &[(usize, usize, usize)],
-    index: fn(usize, usize, usize, (usize, usize, usize)) -> usize,
-    mut check: impl FnMut((usize, usize, usize), (usize, usize, usize), usize),
-) {
-    use scdp_engine::kernels::QUAD;
-    for &(taps, in_channels, out_channels) in shapes {
+/// The int8 kernel layout the tool writes and every backend reads: each weight has its own
+/// place inside the packed length, and within a block of 64 output channels a channel's
+/// next quad is `int8_quad_stride` further (what the SIMD tiles step by), its channels side
+/// by side. Output counts around the block width, including a narrow last block.
+#[test]
+fn int8_layout_places_every_weight_once_and_steps_quads_within_a_block() {
+    use scdp_engine::kernels::{INT8_CHANNEL_BLOCK, QUAD, int8_quad_index, int8_quad_stride};
+    for (taps, in_channels, out_channels) in [
+        (1usize, 4usize, 1usize),
+        (9, 3, 64),
+        (49, 3, 10),
+        (5, 13, 63),
+        (3, 8, 65),
+        (9, 20, 130),
+        (1, 196, 200),
+        (5, 12, 384),
+    ] {
         let quads = in_channels.div_ceil(QUAD);
         let len = taps * quads * QUAD * out_channels;
         let mut seen = vec![false; len];
         for tap in 0..taps {
             for input in 0..quads * QUAD {
                 for output in 0..out_channels {
-                    let at = index(taps, in_channels, out_channels, (tap, input, output));
+                    let at = int8_quad_index(taps, in_channels, out_channels, (tap, input, output));
                     assert!(
                         at < len,
                         "{taps} {in_channels} {out_channels}: {at} >= {len}"
@@ -1992,7 +1990,23 @@ fn each_weight_once(
                         "({tap}, {input}, {output}) lands on a used place"
                     );
                     seen[at] = true;
-                    check((taps, in_channels, out_channels), (tap, input, output), at);
+                    let block_start = output / INT8_CHANNEL_BLOCK * INT8_CHANNEL_BLOCK;
+                    let width = (out_channels - block_start).min(INT8_CHANNEL_BLOCK);
+                    assert_eq!(int8_quad_stride(out_channels, output), width * QUAD);
+                    if input % QUAD == 0 && input + QUAD < quads * QUAD {
+                        let next = (tap, input + QUAD, output);
+                        let step = int8_quad_index(taps, in_channels, out_channels, next) - at;
+                        assert_eq!(
+                            step,
+                            width * QUAD,
+                            "quad step of ({tap}, {input}, {output})"
+                        );
+                    }
+                    if output > block_start {
+                        let previous = (tap, input, output - 1);
+                        let before = int8_quad_index(taps, in_channels, out_channels, previous);
+                        assert_eq!(at - before, QUAD, "channels of a block side by side");
+                    }
                 }
             }
         }
@@ -2001,110 +2015,4 @@ fn each_weight_once(
             "{taps} {in_channels} {out_channels}: a gap"
         );
     }
-}
-
-/// The 1-D kernels' layout (quad rows): within a block of 64 output channels a channel's
-/// next quad is `int8_quad_stride` further (what the SIMD tiles step by), its channels side
-/// by side. Output counts around the block width, including a narrow last block.
-#[test]
-fn int8_layout_places_every_weight_once_and_steps_quads_within_a_block() {
-    use scdp_engine::kernels::{INT8_CHANNEL_BLOCK, QUAD, int8_quad_index, int8_quad_stride};
-    let shapes = [
-        (1usize, 4usize, 1usize),
-        (9, 3, 64),
-        (49, 3, 10),
-        (5, 13, 63),
-        (3, 8, 65),
-        (9, 20, 130),
-        (1, 196, 200),
-        (5, 12, 384),
-    ];
-    each_weight_once(
-        &shapes,
-        int8_quad_index,
-        |(taps, ins, outs), (tap, input, output), at| {
-            let index = |at| int8_quad_index(taps, ins, outs, at);
-            let block_start = output / INT8_CHANNEL_BLOCK * INT8_CHANNEL_BLOCK;
-            let width = (outs - block_start).min(INT8_CHANNEL_BLOCK);
-            assert_eq!(int8_quad_stride(outs, output), width * QUAD);
-            if input.is_multiple_of(QUAD) && input + QUAD < ins.div_ceil(QUAD) * QUAD {
-                let step = index((tap, input + QUAD, output)) - at;
-                assert_eq!(
-                    step,
-                    width * QUAD,
-                    "quad step of ({tap}, {input}, {output})"
-                );
-            }
-            if output > block_start {
-                let before = index((tap, input, output - 1));
-                assert_eq!(at - before, QUAD, "channels of a block side by side");
-            }
-        },
-    );
-}
-
-/// The 2-D kernels' layout (tiles): inside a step of 16 quads a channel's next quad is
-/// `int8_tile_row_bytes` further and the channels of a group of 16 lie side by side, so a
-/// whole step's group is one contiguous 16 x 64-byte tile; with at most 16 channels in a
-/// block it is the quad-row layout.
-#[test]
-fn int8_tile_layout_places_every_weight_once_and_makes_tiles_contiguous() {
-    use scdp_engine::kernels::{
-        INT8_CHANNEL_BLOCK, QUAD, TILE_CHANNELS, TILE_QUADS, int8_quad_index, int8_tile_index,
-        int8_tile_row_bytes,
-    };
-    let shapes = [
-        (1usize, 4usize, 1usize),
-        (9, 3, 64),
-        (1, 196, 64),
-        (5, 13, 63),
-        (3, 8, 65),
-        (9, 64, 128),
-        (9, 96, 130),
-        (1, 196, 200),
-        (9, 20, 16),
-    ];
-    each_weight_once(
-        &shapes,
-        int8_tile_index,
-        |(taps, ins, outs), (tap, input, output), at| {
-            let index = |at| int8_tile_index(taps, ins, outs, at);
-            let group_start = output / TILE_CHANNELS * TILE_CHANNELS;
-            let group_width = (outs - group_start).min(TILE_CHANNELS);
-            assert_eq!(int8_tile_row_bytes(outs, output), group_width * QUAD);
-            let quad = input / QUAD;
-            let next_in_step = !(quad + 1).is_multiple_of(TILE_QUADS);
-            if input.is_multiple_of(QUAD) && next_in_step && quad + 1 < ins.div_ceil(QUAD) {
-                let step = index((tap, input + QUAD, output)) - at;
-                assert_eq!(
-                    step,
-                    group_width * QUAD,
-                    "quad step of ({tap}, {input}, {output})"
-                );
-            }
-            if output > group_start {
-                let before = index((tap, input, output - 1));
-                assert_eq!(at - before, QUAD, "channels of a group side by side");
-            }
-            let block_start = output / INT8_CHANNEL_BLOCK * INT8_CHANNEL_BLOCK;
-            if (outs - block_start).min(INT8_CHANNEL_BLOCK) <= TILE_CHANNELS {
-                let rows = int8_quad_index(taps, ins, outs, (tap, input, output));
-                assert_eq!(at, rows, "one group a block: the quad-row layout");
-            }
-            // A whole step's group of 16 channels: its last weight 1 KB on from its first.
-            if ins >= TILE_QUADS * QUAD
-                && output % TILE_CHANNELS == 0
-                && input % (TILE_QUADS * QUAD) == 0
-                && group_width == TILE_CHANNELS
-                && ins.div_ceil(QUAD) - quad >= TILE_QUADS
-            {
-                let last = index((
-                    tap,
-                    input + TILE_QUADS * QUAD - 1,
-                    output + TILE_CHANNELS - 1,
-                ));
-                assert_eq!(last - at, 1023, "the tile at ({tap}, {input}, {output})");
-            }
-        },
-    );
 }

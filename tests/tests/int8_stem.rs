@@ -11,7 +11,7 @@ use scdp_engine::frame::{PATCH_CHANNELS, STEM_KERNEL, STEM_PADDING, STEM_STRIDE}
 use scdp_engine::kernels::ops::Activation;
 use scdp_engine::kernels::scalar::Scalar;
 use scdp_engine::kernels::{
-    Accumulate, ConvShape, DigitRows, Kernels, QUAD, QuantizeScratch, int8_tile_index,
+    Accumulate, ConvShape, DigitRows, Kernels, QuantizeScratch, int8_quad_index,
 };
 use scdp_engine::pyramid;
 use scdp_engine::rng::NoiseRng;
@@ -50,14 +50,10 @@ fn int8_stem_over_patches_equals_the_7x7_convolution() {
         })
         .collect();
 
-    // The weights as the tool stores the stem's [7, 7, 3, out] kernel: as the 1x1
-    // convolution over patches of one quad a tap that the engine runs (the fourth input of
-    // each quad zero), in the tile layout; and the same weights packed as the 7x7 kernel
-    // over three channels, for the contract's convolution. The largest magnitudes included.
+    // The weights as the tool stores a [7, 7, 3, out] kernel: one quad a tap, the fourth
+    // input of each quad zero; the largest magnitudes included.
     let mut weight = vec![0i8; shape.int8_weight_len()];
-    let mut weight_7x7 = vec![0i8; shape.int8_weight_len()];
-    let taps = STEM_KERNEL * STEM_KERNEL;
-    for tap in 0..taps {
+    for tap in 0..STEM_KERNEL * STEM_KERNEL {
         for input in 0..3 {
             for output in 0..channels {
                 let value = match (tap + input + output) % 17 {
@@ -65,10 +61,12 @@ fn int8_stem_over_patches_equals_the_7x7_convolution() {
                     1 => 127,
                     _ => random.next_u64() as i8,
                 };
-                let patch_channel = tap * QUAD + input;
-                weight[int8_tile_index(1, PATCH_CHANNELS, channels, (0, patch_channel, output))] =
-                    value;
-                weight_7x7[int8_tile_index(taps, 3, channels, (tap, input, output))] = value;
+                weight[int8_quad_index(
+                    STEM_KERNEL * STEM_KERNEL,
+                    3,
+                    channels,
+                    (tap, input, output),
+                )] = value;
             }
         }
     }
@@ -106,7 +104,7 @@ fn int8_stem_over_patches_equals_the_7x7_convolution() {
     Scalar.conv_int8(
         &shape,
         &codes,
-        &weight_7x7,
+        &weight,
         &scales,
         &bias,
         &mut convolved,

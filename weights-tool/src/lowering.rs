@@ -615,36 +615,6 @@ pub const INT8_KEEP_F32: &[(&str, &str)] = &[
 /// The stem convolution's kernel.
 pub const STEM_WEIGHT: &str = "backbone.conv1.weight";
 
-/// Packs an int8 convolution kernel (`[taps, in, out]`) in the layout the engine reads it
-/// in ([`Int8Layout::of`] its dims). The int8 stem runs as a 1x1 convolution over patches
-/// of one quad a tap (`scdp_engine::frame::PATCH_CHANNELS`), so its kernel is packed as
-/// that one: its 49 quads are one tap's, in steps of 16.
-///
-/// [`Int8Layout::of`]: scdp_engine::kernels::Int8Layout::of
-pub fn pack_convolution(
-    name: &str,
-    dims: &[usize],
-    values: &[i8],
-    (input, output): (usize, usize),
-    packed: &mut [i8],
-) {
-    use scdp_engine::kernels::{Int8Layout, QUAD, pack_int8};
-    let layout = Int8Layout::of(dims);
-    if name == STEM_WEIGHT && input < QUAD {
-        let taps = values.len() / (input * output);
-        let mut patches = vec![0i8; taps * QUAD * output];
-        for tap in 0..taps {
-            for channel in 0..input {
-                let from = &values[(tap * input + channel) * output..][..output];
-                patches[(tap * QUAD + channel) * output..][..output].copy_from_slice(from);
-            }
-        }
-        pack_int8(layout, &patches, taps * QUAD, output, packed);
-    } else {
-        pack_int8(layout, values, input, output, packed);
-    }
-}
-
 /// Why the stem stays f32 with ImageNet normalization: its int8 form reads the image bytes
 /// as codes, exact only when a zero byte is the network's zero (the padding).
 pub const STEM_KEPT_F32: &str =
@@ -793,7 +763,7 @@ pub fn store_keeping(
                         let stored = scdp_engine::kernels::int8_stored_elements(&spec.dims)
                             .with_context(|| format!("size of `{name}`"))?;
                         let mut packed = vec![0i8; stored];
-                        pack_convolution(&name, &spec.dims, &values, (input, output), &mut packed);
+                        scdp_engine::kernels::pack_int8_quads(&values, input, output, &mut packed);
                         Stored::Int8 {
                             values: packed,
                             scales,

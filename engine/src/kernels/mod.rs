@@ -12,8 +12,8 @@
 //! feature detection, and its name in `backends()` of the kernel tests and in
 //! `SCDP_REQUIRE_BACKENDS`, so the shared test suite runs it against the reference. The int8
 //! weight layout already suits SDOT: convolution weights are stored in input-channel quads
-//! (1-D: `[out/64, k, in/4, 64, 4]`, [`int8_quad_index`]; 2-D: the same quads in tiles,
-//! [`int8_tile_index`]; docs/FORMAT.md), the four bytes one `sdot` lane reads.
+//! (`[out/64, kh, kw, in/4, 64, 4]`, [`int8_quad_index`], docs/FORMAT.md), the four bytes
+//! one `sdot` lane reads.
 
 pub mod ops;
 pub mod scalar;
@@ -196,16 +196,6 @@ impl ConvShape {
             (tap, input, output),
         )
     }
-
-    /// [`int8_tile_index`] of this convolution's `(tap, input, output)` weight.
-    pub const fn int8_tile_index(&self, tap: usize, input: usize, output: usize) -> usize {
-        int8_tile_index(
-            self.kernel_height * self.kernel_width,
-            self.in_channels,
-            self.out_channels,
-            (tap, input, output),
-        )
-    }
 }
 
 /// Input channels grouped per output channel in the int8 kernels of 2-D convolutions.
@@ -289,116 +279,15 @@ pub fn int8_fits(dims: &[usize]) -> bool {
     int8_convolution(dims).is_none_or(|(_, inputs, _)| inputs <= MAX_DIGIT_CHANNELS)
 }
 
-/// Input-channel quads of one step of [`int8_tile_index`]'s layout: the rows of a tile.
-pub const TILE_QUADS: usize = 16;
-
-/// Output channels of one group of [`int8_tile_index`]'s layout: a 64-byte row of quads.
-pub const TILE_CHANNELS: usize = 16;
-
-/// Where weight `(tap, input, output)` of a 2-D convolution of `taps` kernel taps lives in
-/// its int8 kernel ([`Kernels::conv_int8`], [`Kernels::conv_int8_bytes`]): the blocks of
-/// [`int8_quad_index`], each tap's quads taken [`TILE_QUADS`] at a time (a step), and
-/// inside a step the block's channels in groups of [`TILE_CHANNELS`], each group's quad rows
-/// together: `[ceil(out / 64), taps, steps, groups, step quads, group, 4]`. One group of a
-/// whole step is a matrix tile of 16 rows of 64 bytes, contiguous; the trunk's tiles, which
-/// the tile unit loads for every 16 output positions from the caches, load faster so than
-/// as 16 rows 256 bytes apart (`benches/README.md`, "Session 15"). Inside a group a
-/// channel's next quad is [`int8_tile_row_bytes`] further, until the step ends. With at most
-/// 16 channels in a block the two layouts are the same.
-pub const fn int8_tile_index(
-    taps: usize,
-    in_channels: usize,
-    out_channels: usize,
-    (tap, input, output): (usize, usize, usize),
-) -> usize {
-    let quad = input / QUAD;
-    let step_start = quad / TILE_QUADS * TILE_QUADS;
-    let step_quads = min(TILE_QUADS, int8_quads(in_channels) - step_start);
-    let block_start = output / INT8_CHANNEL_BLOCK * INT8_CHANNEL_BLOCK;
-    let in_block = output - block_start;
-    let group_start = in_block / TILE_CHANNELS * TILE_CHANNELS;
-    let group_width = int8_tile_row_bytes(out_channels, output) / QUAD;
-    // The step's quads of the whole block take the place they take in quad rows.
-    let step = (tap, step_start * QUAD, block_start);
-    int8_quad_index(taps, in_channels, out_channels, step)
-        + (group_start * step_quads + (quad - step_start) * group_width + in_block - group_start)
-            * QUAD
-        + input % QUAD
-}
-
-/// Bytes from a quad of output channel `output` to its next quad inside a step of
-/// [`int8_tile_index`]'s layout: four times the width of the channel's group.
-pub const fn int8_tile_row_bytes(out_channels: usize, output: usize) -> usize {
-    let group_start = output / TILE_CHANNELS * TILE_CHANNELS;
-    min(TILE_CHANNELS, out_channels - group_start) * QUAD
-}
-
-const fn min(a: usize, b: usize) -> usize {
-    if a < b { a } else { b }
-}
-
-/// How an int8 convolution kernel is stored: 1-D convolutions (the U-Net's, streamed from
-/// L3 every step, whose tiles read whole 256-byte rows in address order) in
-/// [`int8_quad_index`]'s layout, 2-D ones (the trunk's, the projections', the stem's) in
-/// [`int8_tile_index`]'s.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Int8Layout {
-    QuadRows,
-    Tiles,
-}
-
-impl Int8Layout {
-    /// The layout of an int8 tensor of `dims`: `[kh, kw, in, out]` in tiles, anything else in
-    /// quad rows.
-    pub fn of(dims: &[usize]) -> Self {
-        match dims {
-            [_, _, _, _] => Int8Layout::Tiles,
-            _ => Int8Layout::QuadRows,
-        }
-    }
-
-    /// Where weight `(tap, input, output)` lives, for `taps`, `in_channels`, `out_channels`.
-    pub const fn index(
-        self,
-        taps: usize,
-        in_channels: usize,
-        out_channels: usize,
-        at: (usize, usize, usize),
-    ) -> usize {
-        match self {
-            Int8Layout::QuadRows => int8_quad_index(taps, in_channels, out_channels, at),
-            Int8Layout::Tiles => int8_tile_index(taps, in_channels, out_channels, at),
-        }
-    }
-}
-
 /// Packs `weight` (`[taps, in, out]`, the f32 layout) into the int8 quad layout `packed`
 /// (`taps * ceil(in / 4) * 4 * out` values; the padding channels are written as 0).
 pub fn pack_int8_quads(weight: &[i8], in_channels: usize, out_channels: usize, packed: &mut [i8]) {
-    pack_int8(
-        Int8Layout::QuadRows,
-        weight,
-        in_channels,
-        out_channels,
-        packed,
-    )
-}
-
-/// [`pack_int8_quads`] into `layout`.
-pub fn pack_int8(
-    layout: Int8Layout,
-    weight: &[i8],
-    in_channels: usize,
-    out_channels: usize,
-    packed: &mut [i8],
-) {
     let taps = weight.len() / (in_channels * out_channels).max(1);
     packed.fill(0);
     for tap in 0..taps {
         for input in 0..in_channels {
             for output in 0..out_channels {
-                let at = (tap, input, output);
-                packed[layout.index(taps, in_channels, out_channels, at)] =
+                packed[int8_quad_index(taps, in_channels, out_channels, (tap, input, output))] =
                     weight[(tap * in_channels + input) * out_channels + output];
             }
         }
@@ -500,8 +389,7 @@ pub trait Kernels: Sync {
 
     /// [`conv`](Self::conv) on 15-bit activation codes in two int8 digit planes
     /// (`code = 128 high + low`, [`DigitRows`]) with one scale for the whole input, the
-    /// kernel in the tile layout of [`int8_tile_index`] (`shape.int8_weight_len()` values;
-    /// [`conv_int8_codes`](Self::conv_int8_codes)' is in quad rows).
+    /// kernel in the quad layout of [`int8_quad_index`] (`shape.int8_weight_len()` values).
     /// For each output position, the integer sum `S[o] = sum code q_w` over every kernel tap
     /// inside the input (padding reads zero codes) and every input channel is exact (the part
     /// every implementation must reproduce; it may be computed as

@@ -3,7 +3,7 @@
 
 use super::{
     Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, Kernels,
-    MAX_BYTE_CHANNELS, MAX_DIGIT_CHANNELS, MAX_DIGIT_TERMS, QUAD, TILE_CHANNELS, ops,
+    MAX_BYTE_CHANNELS, MAX_DIGIT_CHANNELS, MAX_DIGIT_TERMS, QUAD, ops,
 };
 
 /// Output channels accumulated at once in the int8 kernels (an i32 block on the stack): at
@@ -444,22 +444,16 @@ fn digit_sums<Digit: Copy + Into<i16>>(
             .iter_mut()
             .zip(values)
             .for_each(|(v, &q)| *v = q.into());
-        // A 2-D kernel's quad row lies in groups of TILE_CHANNELS channels (int8_tile_index).
-        for group in (0..width).step_by(TILE_CHANNELS) {
-            let group_width = (width - group).min(TILE_CHANNELS);
-            let first = shape.int8_tile_index(tap, quad * QUAD, block + group);
-            let weights = &weight[first..][..group_width * QUAD];
-            let partials = &mut partials[group * QUAD..][..group_width * QUAD];
-            for (partial, w) in partials
-                .chunks_exact_mut(QUAD)
-                .zip(weights.chunks_exact(QUAD))
-            {
-                // Any i8 or u8 by i8 product fits i16 (at most 255 x 128 = 32640): 16-bit
-                // multiplies exist on every SIMD ISA, 32-bit ones not on baseline x86-64
-                // (SSE2).
-                for ((partial, &w), &value) in partial.iter_mut().zip(w).zip(&value) {
-                    *partial += (value * w as i16) as i32;
-                }
+        let first = shape.int8_index(tap, quad * QUAD, block);
+        let weights = &weight[first..][..width * QUAD];
+        for (partial, w) in partials
+            .chunks_exact_mut(QUAD)
+            .zip(weights.chunks_exact(QUAD))
+        {
+            // Any i8 or u8 by i8 product fits i16 (at most 255 x 128 = 32640): 16-bit
+            // multiplies exist on every SIMD ISA, 32-bit ones not on baseline x86-64 (SSE2).
+            for ((partial, &w), &value) in partial.iter_mut().zip(w).zip(&value) {
+                *partial += (value * w as i16) as i32;
             }
         }
     }

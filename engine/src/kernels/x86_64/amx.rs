@@ -17,9 +17,8 @@
 //! straight from aligned memory: the input is copied a band at a time into a stack buffer
 //! with its zero padding and each pixel padded to whole 64-channel steps (`Band`), laid
 //! out so that any 16 consecutive positions read 16 equally spaced pixels at every tap;
-//! the weight tiles are read in place from the file's layout (64-byte rows of 16 channels:
-//! in the 2-D kernels' [`int8_tile_index`] a tile's 16 rows are 1 KB together, in the 1-D
-//! kernels' [`int8_quad_index`] 256 bytes apart, interleaved with the block's other tiles).
+//! the weight tiles are read in place from the file's layout ([`int8_quad_index`]: 64-byte
+//! rows of 16 channels).
 //!
 //! The U-Net's signed codes are split into digits as a band is copied: `high = code >> 7`
 //! (-128..=127) takes the signed-by-signed `tdpbssd`, `low = code & 127` the same
@@ -46,14 +45,14 @@ mod short_sequence;
 
 use super::avx512::Avx512;
 use super::int8::{exact_digits_zmm, round_zmm};
+#[cfg(doc)]
+use crate::kernels::int8_quad_index;
 use crate::kernels::ops::{Activation, DIGIT_BASE};
 use crate::kernels::scalar::{assert_byte_lengths, assert_code_lengths, assert_int8_lengths};
 use crate::kernels::{
-    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Int8Layout, Kernels, MAX_DIGIT_CHANNELS,
-    MAX_DIGIT_TERMS, QUAD, int8_quad_stride, int8_quads, int8_tile_row_bytes,
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, MAX_DIGIT_CHANNELS,
+    MAX_DIGIT_TERMS, QUAD, int8_quad_stride, int8_quads,
 };
-#[cfg(doc)]
-use crate::kernels::{int8_quad_index, int8_tile_index};
 
 /// Rows of every tile: pixels of an activation tile, quads of a weight tile, pixels of a
 /// sum tile.
@@ -362,10 +361,6 @@ trait BandInput {
     /// whole by `tdpbusd`).
     const PLANES: usize;
 
-    /// How the kernels of this input's convolutions are stored: the U-Net's codes in quad
-    /// rows, the trunk's digits and the stem's bytes in tiles.
-    const LAYOUT: Int8Layout;
-
     /// Channels a pixel of the input holds: the layer's input channels, in whole quads.
     fn channels(shape: &ConvShape) -> usize;
 
@@ -396,7 +391,6 @@ trait BandInput {
 impl BandInput for DigitRows<'_> {
     const SIGNED_HIGH: bool = false;
     const PLANES: usize = 2;
-    const LAYOUT: Int8Layout = Int8Layout::Tiles;
 
     fn channels(shape: &ConvShape) -> usize {
         shape.in_channels
@@ -434,7 +428,6 @@ impl BandInput for DigitRows<'_> {
 impl BandInput for CodeRows<'_> {
     const SIGNED_HIGH: bool = true;
     const PLANES: usize = 2;
-    const LAYOUT: Int8Layout = Int8Layout::QuadRows;
 
     fn channels(shape: &ConvShape) -> usize {
         CodeRows::row_stride(shape.in_channels)
@@ -491,7 +484,6 @@ impl BandInput for CodeRows<'_> {
 impl BandInput for ByteRows<'_> {
     const SIGNED_HIGH: bool = false;
     const PLANES: usize = 1;
-    const LAYOUT: Int8Layout = Int8Layout::Tiles;
 
     fn channels(shape: &ConvShape) -> usize {
         shape.in_channels
@@ -529,28 +521,6 @@ impl BandInput for ByteRows<'_> {
 /// (the channels past `in_channels` zero).
 const fn step_channels(in_channels: usize) -> usize {
     in_channels.next_multiple_of(CHANNELS_PER_STEP)
-}
-
-/// Where the weight tile of the 16 channels from `channel` starts for the 64 input
-/// channels from `input` at kernel tap `tap`, in `layout`, and the bytes from one of its
-/// rows (quads) to the next: a whole step's tile is 16 rows either way.
-///
-/// # Panics
-/// If the tile's first weight lies outside `weight` (the model code never asks for one).
-#[inline(always)]
-fn weight_tile(
-    layout: Int8Layout,
-    shape: &ConvShape,
-    weight: &[i8],
-    (tap, input, channel): (usize, usize, usize),
-) -> (*const u8, usize) {
-    let (taps, out) = (shape.kernel_height * shape.kernel_width, shape.out_channels);
-    let at = layout.index(taps, shape.in_channels, out, (tap, input, channel));
-    let row_bytes = match layout {
-        Int8Layout::QuadRows => int8_quad_stride(out, channel),
-        Int8Layout::Tiles => int8_tile_row_bytes(out, channel),
-    };
-    (weight[at..].as_ptr().cast(), row_bytes)
 }
 
 /// Bytes of the stack buffer a band of the input (both digit planes, padded) is copied
@@ -831,9 +801,7 @@ unsafe fn conv<I: BandInput>(
         for channel in (0..shape.out_channels).step_by(BLOCK_CHANNELS) {
             if partial {
                 // SAFETY: the block's channels and every tap are inside `weight`.
-                unsafe {
-                    pack_partial_step(I::LAYOUT, shape, channels, weight, channel, &mut packed)
-                };
+                unsafe { pack_partial_step(shape, channels, weight, channel, &mut packed) };
             }
             for tile in (0..geometry.tiles).step_by(geometry.tiles_per_block) {
                 let first = tile * BLOCK_PIXELS;
@@ -992,15 +960,13 @@ unsafe fn copy_pixels(from: &[i8], in_channels: usize, to: *mut u8, pitch: usize
 }
 
 /// Packs the weight tiles of a partly filled last 64-channel step, for the 32 channels
-/// from `channel` and every tap, from a kernel in `layout`: two tiles a tap, rows past the
-/// last quad zero (read in place they would run into the next tap's quads, or past the
-/// kernel's end).
+/// from `channel` and every tap: two tiles a tap, rows past the last quad zero (read in
+/// place they would run into the next tap's quads, or past the kernel's end).
 ///
 /// # Safety
 /// AVX-512F; the kernel has at most [`MAX_PARTIAL_TAPS`] taps and holds the block's channels.
 #[inline(always)]
 unsafe fn pack_partial_step(
-    layout: Int8Layout,
     shape: &ConvShape,
     channels: usize,
     weight: &[i8],
@@ -1019,9 +985,7 @@ unsafe fn pack_partial_step(
                 unsafe {
                     let to = buffer.as_mut_ptr().add(row * ROW_BYTES);
                     if row < quads {
-                        let input = (first_quad + row) * QUAD;
-                        let at = (tap, input, channels);
-                        let from = layout.index(taps, shape.in_channels, shape.out_channels, at);
+                        let from = shape.int8_index(tap, (first_quad + row) * QUAD, channels);
                         let from = weight[from..][..ROW_BYTES].as_ptr().cast();
                         core::ptr::copy_nonoverlapping(from, to, ROW_BYTES);
                     } else {
@@ -1053,6 +1017,10 @@ unsafe fn tile_sums<I: BandInput>(
     // Whole quads: the weights' quads, zero-padded past the input channels.
     let quads = int8_quads(shape.in_channels);
     let full_steps = quads / ROWS;
+    let quad_stride = int8_quad_stride(shape.out_channels, channel);
+    let weights = weight[shape.int8_index(0, 0, channel)..]
+        .as_ptr()
+        .cast::<u8>();
     let band = band.0.as_ptr().cast::<u8>();
     let low_images = geometry.images() * geometry.image_bytes();
     // SAFETY: tiles are configured (caller).
@@ -1080,14 +1048,11 @@ unsafe fn tile_sums<I: BandInput>(
             };
             for step in 0..full_steps {
                 let channels = step * CHANNELS_PER_STEP;
-                let tile =
-                    |channel| weight_tile(I::LAYOUT, shape, weight, (tap, channels, channel));
-                let ((first, row_bytes), (second, _)) =
-                    (tile(channel), tile(channel + SUM_COLUMNS));
+                let rows = unsafe { weights.add((tap * quads + step * ROWS) * quad_stride) };
                 unsafe {
-                    multiply_step_tiles(
+                    multiply_step(
                         (high.add(channels), low.add(channels), row_step),
-                        (first, second, row_bytes),
+                        (rows, quad_stride),
                         I::SIGNED_HIGH,
                     )
                 };
@@ -1128,6 +1093,29 @@ unsafe fn store_sums(sums: &mut BlockSums) {
             stride = in(reg) ROW_BYTES,
             options(nostack, preserves_flags)
         );
+    }
+}
+
+/// One 64-channel step: the high and low digits of 16 positions (first rows, and their
+/// row stride in bytes) times the step's weights for 32 channels (the first row of 16
+/// quads x 16 channels, whose next 16 channels are 64 bytes on, and the quad row stride),
+/// added to the four sum tiles.
+///
+/// # Safety
+/// As for [`multiply_step_tiles`].
+#[inline(always)]
+unsafe fn multiply_step(
+    (high, low, row_step): (*const u8, *const u8, usize),
+    (weights, quad_stride): (*const u8, usize),
+    signed_high: bool,
+) {
+    // SAFETY: the caller's promises.
+    unsafe {
+        multiply_step_tiles(
+            (high, low, row_step),
+            (weights, weights.add(SUM_COLUMNS * QUAD), quad_stride),
+            signed_high,
+        )
     }
 }
 

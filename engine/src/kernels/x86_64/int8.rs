@@ -18,9 +18,8 @@
 //! (up to 295 KB, ResNet layer4 at 64 channels) stay in the L2 cache while every pixel
 //! reads them; the other order streamed the whole kernel from L3 once per pixel tile. The
 //! weight layout keeps each 64-channel block's quads in one stretch, in the order a tile
-//! reads them ([`int8_quad_index`](crate::kernels::int8_quad_index); a 2-D kernel's in
-//! steps of 16 quads, [`int8_tile_index`](crate::kernels::int8_tile_index)), so they spread
-//! over every cache set.
+//! reads them ([`int8_quad_index`](crate::kernels::int8_quad_index)), so they spread over
+//! every cache set.
 //!
 //! The unsigned-by-signed byte products need activations in 0..=127, which every trunk input
 //! is (a ReLU output); [`DigitRows::nonnegative`] says so, and any other input goes to the
@@ -60,7 +59,7 @@ use crate::kernels::scalar::{
 };
 use crate::kernels::{
     Accumulate, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, MAX_DIGIT_CHANNELS, QUAD,
-    TILE_QUADS, int8_quad_stride, int8_tile_row_bytes, ops,
+    int8_quad_stride, ops,
 };
 
 /// An integer dot product over input-channel quads, `WIDTH` output channels a vector, and
@@ -521,31 +520,31 @@ pub(crate) fn tiles_apply(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
     input.nonnegative && shape.in_channels.is_multiple_of(QUAD)
 }
 
-/// `sums +` the exact i32 products of one step of one kernel tap, both digit planes (high,
-/// then low): `P` pixels (their activation rows in each plane, from the step's first quad)
-/// x `V` vectors of channels, over the step's `quads` input-channel quads. The sums stay in
-/// registers for the whole quad loop, and each quad's weights, loaded once, serve both
-/// planes: a loop per plane loaded them twice, the second time from L1 (in-process A/B,
-/// encode 0.93-0.955x on AVX-512 VNNI, 0.90-1.01x on AVX2).
+/// `sums +` the exact i32 products of one kernel tap, both digit planes (high, then low):
+/// `P` pixels (their activation rows in each plane) x `V` vectors of channels, over every
+/// input-channel quad. The sums stay in registers for the whole quad loop, and each quad's
+/// weights, loaded once, serve both planes: a loop per plane loaded them twice, the second
+/// time from L1 (in-process A/B, encode 0.93-0.955x on AVX-512 VNNI, 0.90-1.01x on AVX2).
 ///
 /// # Safety
-/// The CPU supports `L`; each pointer in `activations` starts `4 quads` readable bytes;
-/// `weights[v]` points at the step's first quad of vector `v`'s first channel, with
-/// `quads` quads, `row_bytes[v]` bytes apart, of `WIDTH` channels readable from each.
+/// The CPU supports `L`; each pointer in `activations` starts a row of `4 quads` readable
+/// bytes; `weights` points at quad 0 of the tap's first channel of the block, with `quads`
+/// quads, `quad_stride` bytes apart, of `V WIDTH` channels readable from there.
 #[inline(always)]
 unsafe fn add_digit_products<L: Int8Lanes, const P: usize, const V: usize>(
     mut sums: [[[L::Integers; V]; P]; 2],
     activations: [[*const i8; P]; 2],
-    (weights, row_bytes): ([*const i8; V], [usize; V]),
+    weights: *const i8,
     quads: usize,
+    quad_stride: usize,
 ) -> [[[L::Integers; V]; P]; 2] {
     for quad in 0..quads {
         // SAFETY: quad `quad` of the block's channels and of each row is inside what the
         // caller vouched for.
         unsafe {
-            let vectors: [L::Integers; V] = core::array::from_fn(|vector| {
-                L::load_weights(weights[vector].add(quad * row_bytes[vector]))
-            });
+            let row = weights.add(quad * quad_stride);
+            let vectors: [L::Integers; V] =
+                core::array::from_fn(|vector| L::load_weights(row.add(vector * L::WIDTH * QUAD)));
             for pixel in 0..P {
                 for plane in 0..2 {
                     let broadcast = L::broadcast_quad(activations[plane][pixel].add(quad * QUAD));
@@ -612,12 +611,7 @@ unsafe fn digit_sums<L: Int8Lanes, const P: usize, const V: usize>(
     channel: usize,
 ) -> [[[L::Integers; V]; P]; 2] {
     let in_channels = shape.in_channels;
-    let quads = in_channels / QUAD;
-    // Each vector's channels lie in one group of the tile layout (`V WIDTH` channels from a
-    // multiple of that width, groups of 16): their rows, step by step.
-    let row_bytes: [usize; V] = core::array::from_fn(|vector| {
-        int8_tile_row_bytes(shape.out_channels, channel + vector * L::WIDTH)
-    });
+    let quad_stride = int8_quad_stride(shape.out_channels, channel);
     // SAFETY: the caller runs on `L`'s CPU.
     let mut sums = [[[unsafe { L::zero_integers() }; V]; P]; 2];
     for kernel_y in 0..shape.kernel_height {
@@ -630,27 +624,14 @@ unsafe fn digit_sums<L: Int8Lanes, const P: usize, const V: usize>(
                 continue;
             };
             let tap = kernel_y * shape.kernel_width + kernel_x;
-            for first_quad in (0..quads).step_by(TILE_QUADS) {
-                let first = first_quad * QUAD;
-                let weights: [*const i8; V] = core::array::from_fn(|vector| {
-                    let channel = channel + vector * L::WIDTH;
-                    weight[shape.int8_tile_index(tap, first, channel)..].as_ptr()
-                });
-                // Inside every row (the zero row too, as long): offsets of whole quads.
-                let activations = [high, low].map(|rows| rows.map(|row| row.wrapping_add(first)));
-                let step_quads = (quads - first_quad).min(TILE_QUADS);
-                // SAFETY: every source is an input row of `in_channels` = 4 quads values
-                // (`tiles_apply`) or the zero row, as long, read from the step's first
-                // quad; the step's quads of each vector's channels are inside `weight`
-                // (the caller's promise).
-                unsafe {
-                    sums = add_digit_products::<L, P, V>(
-                        sums,
-                        activations,
-                        (weights, row_bytes),
-                        step_quads,
-                    );
-                }
+            let weights = weight[shape.int8_index(tap, 0, channel)..].as_ptr();
+            let quads = in_channels / QUAD;
+            // SAFETY: every source is an input row of `in_channels` = 4 quads values
+            // (`tiles_apply`) or the zero row, as long; the tap's quads of the block's
+            // channels are inside `weight` (the caller's promise).
+            unsafe {
+                sums =
+                    add_digit_products::<L, P, V>(sums, [high, low], weights, quads, quad_stride);
             }
         }
     }

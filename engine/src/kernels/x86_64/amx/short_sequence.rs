@@ -24,10 +24,10 @@ use core::mem::MaybeUninit;
 
 use super::{
     BAND_BYTES, BandBuffer, BandInput, CHANNELS_PER_STEP, Epilogue, MAX_DIGIT_CHANNELS, Parameters,
-    ROW_BYTES, ROWS, SUM_COLUMNS, TILE_CONFIG, TileBuffer, weight_tile,
+    ROW_BYTES, ROWS, SUM_COLUMNS, TILE_CONFIG, TileBuffer,
 };
 use crate::kernels::scalar::tap_input;
-use crate::kernels::{Accumulate, ConvShape, INT8_CHANNEL_BLOCK};
+use crate::kernels::{Accumulate, ConvShape, INT8_CHANNEL_BLOCK, int8_quad_stride};
 
 /// Output positions an activation tile holds: its first rows are their high digits, the
 /// rest their low digits.
@@ -227,6 +227,7 @@ unsafe fn pass_sums<I: BandInput>(
     channel: usize,
 ) {
     let pitch = shape.in_channels;
+    let quad_stride = int8_quad_stride(shape.out_channels, channel);
     let rows = tap_rows.0.as_ptr().cast::<u8>();
     // SAFETY: tiles are configured (caller).
     unsafe {
@@ -242,57 +243,47 @@ unsafe fn pass_sums<I: BandInput>(
         for step in (0..pitch).step_by(CHANNELS_PER_STEP) {
             // SAFETY: the tap's rows hold `pitch` bytes from each row start; the step's 16
             // quads of the block's 64 channels are inside `weight` (the caller's promise).
-            let tile = |group| {
-                let channel = channel + group * SUM_COLUMNS;
-                weight_tile(I::LAYOUT, shape, weight, (tap, step, channel))
-            };
-            let ((first, row_bytes), second, third, fourth) =
-                (tile(0), tile(1).0, tile(2).0, tile(3).0);
             unsafe {
                 let activations = rows.add(tap * ROWS * pitch + step);
-                multiply_step::<I>(
-                    (activations, pitch),
-                    ([first, second, third, fourth], row_bytes),
-                );
+                let weights = weight[shape.int8_index(tap, step, channel)..]
+                    .as_ptr()
+                    .cast::<u8>();
+                multiply_step::<I>((activations, pitch), (weights, quad_stride));
             }
         }
     }
 }
 
 /// One 64-channel step: the activation tile (rows `row_step` bytes apart) times the four
-/// weight tiles of the block's 16-channel groups (rows `row_bytes` apart: in quad rows the
-/// tiles interleave, 64 bytes apart, so a pass reads each 256-byte row whole), added to
-/// `tmm0`-`tmm3`. The weight tiles cycle through three registers; each is loaded just
-/// before its product.
+/// weight tiles of the block's 16-channel groups (64 bytes apart, rows `quad_stride` bytes
+/// apart), added to `tmm0`-`tmm3`. The weight tiles cycle through three registers; each is
+/// loaded just before its product.
 ///
 /// # Safety
 /// Tiles configured as [`TILE_CONFIG`] says; `activations` starts 16 readable 64-byte rows
-/// `row_step` apart, each of `weights` 16 readable 64-byte rows `row_bytes` apart; rows
-/// 64-byte aligned for speed.
+/// `row_step` apart, `weights` 16 readable 256-byte rows `quad_stride` apart; rows 64-byte
+/// aligned for speed.
 #[inline(always)]
 unsafe fn multiply_step<I: BandInput>(
     (activations, row_step): (*const u8, usize),
-    ([first, second, third, fourth], row_bytes): ([*const u8; 4], usize),
+    (weights, quad_stride): (*const u8, usize),
 ) {
     macro_rules! step {
         ($product:literal) => {
             asm!(
                 "tileloadd tmm4, [{activations} + {row_step}]",
-                "tileloadd tmm5, [{first} + {row_bytes}]",
+                "tileloadd tmm5, [{weights} + {quad_stride}]",
                 concat!($product, " tmm0, tmm4, tmm5"),
-                "tileloadd tmm6, [{second} + {row_bytes}]",
+                "tileloadd tmm6, [{weights} + {quad_stride} + 64]",
                 concat!($product, " tmm1, tmm4, tmm6"),
-                "tileloadd tmm7, [{third} + {row_bytes}]",
+                "tileloadd tmm7, [{weights} + {quad_stride} + 128]",
                 concat!($product, " tmm2, tmm4, tmm7"),
-                "tileloadd tmm5, [{fourth} + {row_bytes}]",
+                "tileloadd tmm5, [{weights} + {quad_stride} + 192]",
                 concat!($product, " tmm3, tmm4, tmm5"),
                 activations = in(reg) activations,
                 row_step = in(reg) row_step,
-                first = in(reg) first,
-                second = in(reg) second,
-                third = in(reg) third,
-                fourth = in(reg) fourth,
-                row_bytes = in(reg) row_bytes,
+                weights = in(reg) weights,
+                quad_stride = in(reg) quad_stride,
                 options(nostack, readonly, preserves_flags)
             )
         };
