@@ -552,8 +552,10 @@ pub fn lower_upsample(weight: &[f32], bias: &[f32]) -> (Vec<f32>, Vec<f32>) {
         4 * channels * channels,
         "ConvTranspose1d weight"
     );
+    // Taps 0 and 1 below: inputs `p - 1` and `p`, the engine's two.
+    const { assert!(scdp_engine::weights::UPSAMPLE_TAPS == 2) };
     let wide = 2 * channels;
-    let mut lowered = vec![0.0; 2 * channels * wide];
+    let mut lowered = vec![0.0; scdp_engine::weights::UPSAMPLE_TAPS * channels * wide];
     for input in 0..channels {
         for output in 0..channels {
             let tap = |k: usize| weight[(input * channels + output) * 4 + k];
