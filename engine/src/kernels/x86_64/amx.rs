@@ -86,7 +86,7 @@ impl Amx {
     /// at least one output pixel fits the stack buffer (other shapes go to [`Avx512`]).
     /// Every int8 layer of the model qualifies, the stem's 196-byte patches included.
     pub fn covers(shape: &ConvShape, input: &DigitRows<'_>) -> bool {
-        band(shape, input).is_some()
+        short_sequence_takes(shape, input) || band(shape, input).is_some()
     }
 
     /// [`covers`](Self::covers) for [`Kernels::conv_int8_bytes`]: the stem's patches
@@ -105,14 +105,14 @@ impl Amx {
     /// [`covers`](Self::covers) for [`Kernels::conv_int8_codes`]: every U-Net convolution
     /// with int8 weights qualifies.
     pub fn covers_codes(shape: &ConvShape, input: &CodeRows<'_>) -> bool {
-        band(shape, input).is_some()
+        short_sequence_takes(shape, input) || band(shape, input).is_some()
     }
 
     /// Whether [`covers_codes`](Self::covers_codes) takes `shape` as a short sequence: one
     /// output row of at most 8 positions, whole 64-channel steps in and blocks out, both
     /// digits in one tile and 64 channels a pass (the U-Net's sequences of 8 and 4).
     pub fn covers_short_sequence(shape: &ConvShape, input: &CodeRows<'_>) -> bool {
-        band(shape, input).is_some() && short_sequence::applies(shape, CodeRows::channels(shape))
+        short_sequence_takes(shape, input)
     }
 
     /// [`Kernels::conv_int8`] on the tiles; `false`, with nothing written, when they do not
@@ -189,7 +189,7 @@ impl Amx {
         output: &mut [f32],
     ) -> bool {
         let channels = DigitRows::channels(shape);
-        if band(shape, input).is_none() || !short_sequence::applies_to_cells(shape, channels) {
+        if !tiles_take(shape, input) || !short_sequence::applies_to_cells(shape, channels) {
             return false;
         }
         input.assert_lengths(shape, parameters, output.len());
@@ -216,15 +216,18 @@ impl Amx {
         output: &mut [f32],
         accumulate: Accumulate,
     ) -> bool {
+        // A short sequence needs no band plan: choosing one (both layouts costed) for each
+        // of the U-Net's convolutions was work thrown away.
+        if short_sequence_takes(shape, input) {
+            input.assert_lengths(shape, parameters, output.len());
+            // SAFETY: as below; `short_sequence_takes` was checked just above.
+            unsafe { short_sequence::conv(shape, input, parameters, output, accumulate) };
+            return true;
+        }
         let Some(band) = band(shape, input) else {
             return false;
         };
         input.assert_lengths(shape, parameters, output.len());
-        if short_sequence::applies(shape, I::channels(shape)) {
-            // SAFETY: as below; `applies` was checked just above.
-            unsafe { short_sequence::conv(shape, input, parameters, output, accumulate) };
-            return true;
-        }
         // SAFETY: `self` exists only once AMX, AVX-512 and the permission were detected;
         // the lengths were asserted and the band planned just above.
         unsafe { conv(shape, input, parameters, output, accumulate, band) };
@@ -332,18 +335,28 @@ impl TileBuffer {
     }
 }
 
-/// The band plan of a convolution the tiles take, `None` for one they do not.
-fn band<I: BandInput>(shape: &ConvShape, input: &I) -> Option<Band> {
+/// Whether every tile kernel can take a convolution on `input`: digits the products
+/// take, whole quads, exact sums, whole 32-channel blocks, and a partial last step packable.
+fn tiles_take<I: BandInput>(shape: &ConvShape, input: &I) -> bool {
     let channels = I::channels(shape);
     let taps = shape.kernel_height * shape.kernel_width;
     let partial_fits = channels.is_multiple_of(CHANNELS_PER_STEP) || taps <= MAX_PARTIAL_TAPS;
-    let applies = input.digits_fit()
+    input.digits_fit()
         && channels.is_multiple_of(QUAD)
         && taps * channels <= MAX_DIGIT_TERMS
         && shape.out_channels.is_multiple_of(BLOCK_CHANNELS)
-        && partial_fits;
-    if applies {
-        Band::plan(shape, channels, I::PLANES)
+        && partial_fits
+}
+
+/// Whether the tiles take a convolution of two digit planes as a short sequence.
+fn short_sequence_takes<I: BandInput>(shape: &ConvShape, input: &I) -> bool {
+    I::PLANES == 2 && tiles_take(shape, input) && short_sequence::applies(shape, I::channels(shape))
+}
+
+/// The band plan of a convolution the tiles take, `None` for one they do not.
+fn band<I: BandInput>(shape: &ConvShape, input: &I) -> Option<Band> {
+    if tiles_take(shape, input) {
+        Band::plan(shape, I::channels(shape), I::PLANES)
     } else {
         None
     }

@@ -45,7 +45,7 @@ type PassSums = [TileBuffer; PASS_TILES];
 /// Whether `shape` is a short sequence this kernel takes: one output row of at most
 /// [`POSITIONS`] positions, whole 64-channel steps in, whole layout blocks out, and every
 /// tap's activation tiles fitting the stack buffer. The caller has checked what every tile
-/// kernel needs ([`super::band`]).
+/// kernel needs ([`super::tiles_take`]).
 pub(super) fn applies(shape: &ConvShape, channels: usize) -> bool {
     shape.in_height == 1
         && shape.kernel_height == 1
@@ -56,7 +56,7 @@ pub(super) fn applies(shape: &ConvShape, channels: usize) -> bool {
 
 /// Whether [`conv_cells`] takes `shape`'s output pixels a few at a time: whole 64-channel
 /// steps in, whole layout blocks out, every tap's activation tiles fitting the stack buffer.
-/// The caller has checked what every tile kernel needs ([`super::band`]).
+/// The caller has checked what every tile kernel needs ([`super::tiles_take`]).
 pub(super) fn applies_to_cells(shape: &ConvShape, channels: usize) -> bool {
     channels == shape.in_channels
         && channels.is_multiple_of(CHANNELS_PER_STEP)
@@ -71,7 +71,7 @@ pub(super) fn applies_to_cells(shape: &ConvShape, channels: usize) -> bool {
 /// # Safety
 /// The CPU supports AVX-512F/BW, AMX-TILE and AMX-INT8 and this thread may use the tile
 /// state; the slice lengths are those the input's `assert_lengths` checks; [`applies`]
-/// holds and [`super::band`] accepts the shape.
+/// holds and [`super::tiles_take`] accepts the shape.
 #[target_feature(enable = "avx512f,avx512bw")]
 pub(super) unsafe fn conv<I: BandInput>(
     shape: &ConvShape,
