@@ -12,7 +12,7 @@
 //! The int8 convolutions of the U-Net take int8 activations: `sequence_int8`.
 
 use super::lanes::{Lanes, Ymm, Zmm};
-use super::prefetch_lines;
+use super::{prefetch_lines, prefetch_lines_into_l2};
 use crate::kernels::{Accumulate, ConvShape};
 
 /// Output positions per register tile: 4 positions x 2 vectors are eight accumulators,
@@ -167,12 +167,14 @@ unsafe fn convolve<L: Lanes>(
     }
 }
 
-/// Bytes ahead of the weight row being read that [`convolve_streaming`] asks the caches
-/// for. The weights are one stream in memory order, yet the hardware prefetchers alone
-/// left the f32 loop at about 7 GB/s; in-process A/B (denoise, alternating repetitions,
-/// AVX-512): 4-16 KB ahead all gave 0.71-0.77x of the loop without it, 32-64 KB less,
-/// 8 KB kept (`benches/README.md`, session 10).
-const STREAMING_PREFETCH: usize = 8192;
+/// Bytes ahead of the weight row being read that [`convolve_streaming`] asks L2 for. The
+/// weights are one stream in memory order, yet the hardware prefetchers alone left the f32
+/// loop at about 7 GB/s (session 10: 4-16 KB ahead into L1 gave 0.71-0.77x of the loop
+/// without it, from the 480 MB L3 of an AMX VM). Where the 59 MB a step come from DRAM (a
+/// 32 MB L3), asking into L1 8-32 KB ahead made no difference and asking into L2 16 KB
+/// ahead ran the loop 1.5-1.7x faster; 32-64 KB measured the same as 16
+/// (`benches/README.md`, session 16).
+const STREAMING_PREFETCH: usize = 16384;
 
 /// Bytes ahead of the columns being read that [`matvec`] asks the caches for (the f32 FiLM
 /// rows, 16 MB a step, one stream as the int8 ones: `int8::MATVEC_PREFETCH`).
@@ -318,7 +320,7 @@ unsafe fn stream_tap<L: Lanes, const P: usize, const Q: usize>(
             // The lines `STREAMING_PREFETCH` ahead of the ones this vector reads, spread over
             // the loop (asked for all at once, they filled the line buffers and stalled it).
             for row in 0..rows {
-                prefetch_lines(ahead.wrapping_add(row * out_channels + channel), 1);
+                prefetch_lines_into_l2(ahead.wrapping_add(row * out_channels + channel), 1);
             }
             let lanes = weights.wrapping_add(channel);
             let at = (first_row, channel);
