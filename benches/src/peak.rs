@@ -70,6 +70,13 @@ pub fn available() -> Vec<Throughput> {
                 run: x86::dpbusd_zmm,
             });
         }
+        if has!("avx512vnni") {
+            loops.push(Throughput {
+                name: "int16 zmm VNNI vpdpwssd (32 MAC; the U-Net's code products)",
+                macs_per_iteration: (CHAINS_AVX512 * 32) as u64,
+                run: x86::dpwssd_zmm,
+            });
+        }
         // The engine's own detection: CPUID, XCR0 and, on Linux, the OS's permission.
         if scdp_engine::kernels::select(scdp_engine::Backend::Amx).is_some() {
             loops.push(Throughput {
@@ -201,6 +208,7 @@ mod x86 {
     checked!(maddubs_ymm, maddubs_ymm_loop, "avx2");
     checked!(dpbusd_ymm, dpbusd_ymm_loop, "avx512vnni", "avx512vl");
     checked!(dpbusd_zmm, dpbusd_zmm_loop, "avx512vnni");
+    checked!(dpwssd_zmm, dpwssd_zmm_loop, "avx512vnni");
 
     fn sum_f32(lanes: &[f32]) -> f64 {
         lanes.iter().map(|&v| v as f64).sum()
@@ -328,6 +336,29 @@ mod x86 {
         for _ in 0..iterations {
             for chain in &mut acc {
                 *chain = _mm512_dpbusd_epi32(*chain, a, b);
+            }
+        }
+        let mut lanes = [0i32; CHAINS_AVX512 * 16];
+        for (chain, out) in acc.iter().zip(lanes.chunks_exact_mut(16)) {
+            // SAFETY: `out` holds exactly 16 i32 (64 bytes); storeu has no alignment
+            // requirement.
+            unsafe { _mm512_storeu_si512(out.as_mut_ptr().cast(), *chain) };
+        }
+        sum_i32(&lanes)
+    }
+
+    /// `acc += dot2(i16, i16)` per i32 lane (vpdpwssd) on `CHAINS_AVX512` zmm registers.
+    ///
+    /// # Safety
+    /// The CPU must support AVX-512 VNNI (which implies AVX-512F).
+    #[target_feature(enable = "avx512vnni")]
+    unsafe fn dpwssd_zmm_loop(iterations: u64) -> f64 {
+        let a = _mm512_set1_epi16(i16::from(opaque_one_i8()));
+        let b = _mm512_set1_epi16(i16::from(opaque_one_i8()));
+        let mut acc = [_mm512_setzero_si512(); CHAINS_AVX512];
+        for _ in 0..iterations {
+            for chain in &mut acc {
+                *chain = _mm512_dpwssd_epi32(*chain, a, b);
             }
         }
         let mut lanes = [0i32; CHAINS_AVX512 * 16];
@@ -477,7 +508,7 @@ mod tests {
     #[test]
     fn every_throughput_loop_computes_its_sum() {
         let loops = available();
-        // The project's machine has all five; elsewhere at least the AVX2 ones.
+        // An AVX-512 VNNI machine has six (seven with AMX); elsewhere at least the AVX2 ones.
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
             assert!(loops.len() >= 2);
