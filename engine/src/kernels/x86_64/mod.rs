@@ -158,12 +158,7 @@ use crate::kernels::ConvShape;
 /// layer), hence the wrapping address arithmetic.
 #[inline(always)]
 fn prefetch_lines<T>(start: *const T, bytes: usize) {
-    let start = start.cast::<i8>();
-    for line in (0..bytes).step_by(64) {
-        // SAFETY: `prefetcht0` has no architectural effect and never faults; SSE is part of
-        // x86-64.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>(start.wrapping_add(line)) };
-    }
+    prefetch_lines_with::<_MM_HINT_T0, T>(start, bytes);
 }
 
 /// [`prefetch_lines`] into L2 only (`prefetcht1`): for weight streams asked for far ahead of
@@ -172,10 +167,17 @@ fn prefetch_lines<T>(start: *const T, bytes: usize) {
 /// from DRAM ran 1.5-1.7x faster (session 16, `benches/README.md`).
 #[inline(always)]
 fn prefetch_lines_into_l2<T>(start: *const T, bytes: usize) {
+    prefetch_lines_with::<_MM_HINT_T1, T>(start, bytes);
+}
+
+/// The lines of `bytes` bytes from `start` asked for with prefetch hint `HINT`.
+#[inline(always)]
+fn prefetch_lines_with<const HINT: i32, T>(start: *const T, bytes: usize) {
     let start = start.cast::<i8>();
     for line in (0..bytes).step_by(64) {
-        // SAFETY: as in `prefetch_lines`.
-        unsafe { _mm_prefetch::<_MM_HINT_T1>(start.wrapping_add(line)) };
+        // SAFETY: a prefetch has no architectural effect and never faults; SSE is part of
+        // x86-64.
+        unsafe { _mm_prefetch::<HINT>(start.wrapping_add(line)) };
     }
 }
 
