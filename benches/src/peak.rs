@@ -218,6 +218,19 @@ mod x86 {
         lanes.iter().map(|&v| v as f64).sum()
     }
 
+    /// The sum of every i32 lane of the integer loops' `CHAINS_AVX512` zmm accumulators
+    /// (callable without `unsafe` from the loops, which are compiled with AVX-512F).
+    #[target_feature(enable = "avx512f")]
+    fn sum_i32_zmm(acc: &[__m512i; CHAINS_AVX512]) -> f64 {
+        let mut lanes = [0i32; CHAINS_AVX512 * 16];
+        for (chain, out) in acc.iter().zip(lanes.chunks_exact_mut(16)) {
+            // SAFETY: `out` holds exactly 16 i32 (64 bytes); storeu has no alignment
+            // requirement.
+            unsafe { _mm512_storeu_si512(out.as_mut_ptr().cast(), *chain) };
+        }
+        sum_i32(&lanes)
+    }
+
     /// `acc = acc * 1 + 1` on `CHAINS` ymm registers.
     ///
     /// # Safety
@@ -338,13 +351,7 @@ mod x86 {
                 *chain = _mm512_dpbusd_epi32(*chain, a, b);
             }
         }
-        let mut lanes = [0i32; CHAINS_AVX512 * 16];
-        for (chain, out) in acc.iter().zip(lanes.chunks_exact_mut(16)) {
-            // SAFETY: `out` holds exactly 16 i32 (64 bytes); storeu has no alignment
-            // requirement.
-            unsafe { _mm512_storeu_si512(out.as_mut_ptr().cast(), *chain) };
-        }
-        sum_i32(&lanes)
+        sum_i32_zmm(&acc)
     }
 
     /// `acc += dot2(i16, i16)` per i32 lane (vpdpwssd) on `CHAINS_AVX512` zmm registers.
@@ -361,13 +368,7 @@ mod x86 {
                 *chain = _mm512_dpwssd_epi32(*chain, a, b);
             }
         }
-        let mut lanes = [0i32; CHAINS_AVX512 * 16];
-        for (chain, out) in acc.iter().zip(lanes.chunks_exact_mut(16)) {
-            // SAFETY: `out` holds exactly 16 i32 (64 bytes); storeu has no alignment
-            // requirement.
-            unsafe { _mm512_storeu_si512(out.as_mut_ptr().cast(), *chain) };
-        }
-        sum_i32(&lanes)
+        sum_i32_zmm(&acc)
     }
 
     /// `tdpbusd` on [`AMX_SUMS`](super::AMX_SUMS) independent sum tiles from two
