@@ -2,7 +2,8 @@
 //! context, so firmware can plan its arena at compile time.
 
 use crate::error::ConfigError;
-use crate::frame::{STEM_KERNEL, STEM_PADDING, STEM_STRIDE};
+// Re-exported: the map sizes here are written with it, and dependants found it here.
+pub use crate::shape::conv_output;
 
 /// Which normalization the ResNet-18 trunk was trained with.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -19,6 +20,16 @@ pub const UNET_LEVELS: usize = 3;
 
 /// Number of feature-pyramid levels (C1..C5 of ResNet-18).
 pub const PYRAMID_LEVELS: usize = 5;
+
+/// ResNet's stem convolution: 7x7, stride 2, padding 3, over the three colours. Fixed by
+/// torchvision's resnet18, not a field; every map size below follows from it.
+pub const STEM_KERNEL: usize = 7;
+pub const STEM_STRIDE: usize = 2;
+pub const STEM_PADDING: usize = 3;
+
+/// Diffusion Policy builds the U-Net head's Conv1dBlock without passing `n_groups`, so it
+/// always has its default of 8 groups, and `down_dims[0]` must divide by it.
+pub const FINAL_BLOCK_GROUPS: usize = 8;
 
 /// Every hyper-parameter that shapes a model. Field names follow the TOML of SPEC section 7.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -118,9 +129,11 @@ impl ModelConfig {
         clip_sample: true,
     };
 
-    /// Checks every rule the engine and the weights tool rely on. `const` so a firmware
-    /// build can reject a bad configuration at compile time.
-    pub const fn validate(&self) -> Result<(), ConfigError> {
+    /// Checks every rule on the fields the engine and the weights tool rely on.
+    /// [`ModelConfig::validate`] adds the one rule that needs the arena plan (its size fits
+    /// the address space); it is defined with the plan, in [`crate::plan`], so that this
+    /// module stays below everything that is sized from a configuration.
+    pub const fn validate_fields(&self) -> Result<(), ConfigError> {
         if self.image_height == 0 || self.image_width == 0 {
             return Err(ConfigError::ZeroImageSize);
         }
@@ -192,7 +205,7 @@ impl ModelConfig {
             level += 1;
         }
         // The head's GroupNorm has Diffusion Policy's default 8 groups whatever n_groups is.
-        if !self.down_dims[0].is_multiple_of(crate::denoiser::FINAL_BLOCK_GROUPS as u32) {
+        if !self.down_dims[0].is_multiple_of(FINAL_BLOCK_GROUPS as u32) {
             return Err(ConfigError::DownDims);
         }
         if self.diffusion_step_embed_dim < 4
@@ -212,11 +225,6 @@ impl ModelConfig {
             || self.num_inference_steps > self.num_train_timesteps
         {
             return Err(ConfigError::InferenceSteps);
-        }
-        // Legal sizes can still ask for more memory than a 32-bit target can address (8
-        // frames of 4096x4096 pyramids); refused here so no length ever wraps around.
-        if crate::plan::ArenaPlan::arena_bytes_u64(self) > isize::MAX as u64 {
-            return Err(ConfigError::ArenaTooLarge);
         }
         Ok(())
     }
@@ -312,11 +320,6 @@ impl ModelConfig {
     pub const fn backbone_groups(channels: usize) -> usize {
         channels / 16
     }
-}
-
-/// Output length of a convolution or pooling window (PyTorch's floor rule).
-pub const fn conv_output(input: usize, kernel: usize, stride: usize, padding: usize) -> usize {
-    (input + 2 * padding - kernel) / stride + 1
 }
 
 /// Upper bounds that size fixed arrays inside the engine.

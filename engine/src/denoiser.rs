@@ -1,14 +1,11 @@
 //! Sample + condition -> predicted noise: Diffusion Policy's ConditionalUnet1D with FiLM
 //! (SPEC section 4), over `[T, C]` sequences.
 
-use crate::config::{ModelConfig, UNET_LEVELS};
+use crate::config::{FINAL_BLOCK_GROUPS, ModelConfig, UNET_LEVELS};
 use crate::kernels::ops::{self, Activation};
-use crate::kernels::{self, Accumulate, Activations, ConvShape, Kernels, QuantizeScratch};
+use crate::kernels::{Accumulate, ConvShape, Kernels, QuantizeScratch};
+use crate::layer::{self, Activations};
 use crate::weights::{Conv, DenoiserWeights, Norm, ResidualBlock, UPSAMPLE_TAPS};
-
-/// Diffusion Policy builds the head's Conv1dBlock without passing `n_groups`, so it always
-/// has its default of 8 groups.
-pub const FINAL_BLOCK_GROUPS: usize = 8;
 
 /// The U-Net's buffers (lengths from the arena plan).
 pub struct DenoiserScratch<'a> {
@@ -40,7 +37,7 @@ impl Context<'_> {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        kernels::convolve(
+        layer::convolve(
             self.kernels,
             shape,
             input,
@@ -100,7 +97,7 @@ impl Context<'_> {
         );
         let film = &mut self.film[..2 * out_channels];
         let base = &block.film_table[self.step * 2 * out_channels..][..2 * out_channels];
-        kernels::linear(
+        layer::linear(
             self.kernels,
             &block.film_weight,
             self.activated_cond,

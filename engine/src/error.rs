@@ -77,8 +77,9 @@ pub enum Error {
     Truncated,
     /// Not a weights file.
     BadMagic,
-    /// A weights file from another format version.
-    UnsupportedVersion { found: u32 },
+    /// A weights file from another format version than the one this engine reads
+    /// (`supported`, [`crate::format::VERSION`]).
+    UnsupportedVersion { found: u32, supported: u32 },
     /// Inconsistent header fields.
     BadHeader,
     /// The bytes were altered after the tool wrote them.
@@ -131,10 +132,9 @@ impl fmt::Display for Error {
             Self::MisalignedBuffer => f.write_str("weights buffer is not 64-byte aligned"),
             Self::Truncated => f.write_str("weights file is truncated"),
             Self::BadMagic => f.write_str("not an SCDP weights file (bad magic)"),
-            Self::UnsupportedVersion { found } => write!(
+            Self::UnsupportedVersion { found, supported } => write!(
                 f,
-                "weights file format version {found}; this engine reads version {}",
-                crate::format::VERSION
+                "weights file format version {found}; this engine reads version {supported}"
             ),
             Self::BadHeader => f.write_str("weights file header is inconsistent"),
             Self::ChecksumMismatch => f.write_str("weights file checksum does not match"),

@@ -6,6 +6,7 @@
 
 use crate::config::{BackboneNorm, ModelConfig, UNET_LEVELS};
 use crate::error::Error as LoadError;
+use crate::shape::int8_stored_elements;
 
 /// First eight bytes of every weights file.
 pub const MAGIC: [u8; 8] = *b"SCDPWTS\0";
@@ -240,7 +241,10 @@ impl<'w> WeightsFile<'w> {
         }
         let version = u32_at(bytes, 8);
         if version != VERSION {
-            return Err(LoadError::UnsupportedVersion { found: version });
+            return Err(LoadError::UnsupportedVersion {
+                found: version,
+                supported: VERSION,
+            });
         }
         if u32_at(bytes, 12) as usize != HEADER_BYTES {
             return Err(LoadError::BadHeader);
@@ -365,9 +369,9 @@ impl<'w> WeightsFile<'w> {
         let offset = usize::try_from(u64_at(row, 80)).map_err(|_| bad)?;
         let byte_len = usize::try_from(u64_at(row, 88)).map_err(|_| bad)?;
         // An int8 convolution kernel is stored in input-channel quads, `in` padded to a
-        // multiple of 4 (crate::kernels::int8_quad_index).
+        // multiple of 4 (crate::shape::int8_quad_index).
         let stored = match dtype {
-            DType::I8 => crate::kernels::int8_stored_elements(&dims[..rank]).ok_or(bad)?,
+            DType::I8 => int8_stored_elements(&dims[..rank]).ok_or(bad)?,
             DType::F32 => elements,
         };
         if stored.checked_mul(dtype.size()) != Some(byte_len) {

@@ -4,21 +4,16 @@
 
 use core::ops::Range;
 
-use crate::config::ModelConfig;
+use crate::config::{ModelConfig, STEM_KERNEL, STEM_PADDING, STEM_STRIDE};
 use crate::error::Error;
-use crate::kernels::QUAD;
-
-/// ResNet's stem convolution: 7x7, stride 2, padding 3, over the three colours.
-pub const STEM_KERNEL: usize = 7;
-pub const STEM_STRIDE: usize = 2;
-pub const STEM_PADDING: usize = 3;
+use crate::shape::QUAD;
 
 /// Values of one stem patch: each of the 49 taps a quad (the pixel's three bytes and a
 /// zero). An int8 kernel over three channels stores one quad a tap ([`int8_quad_index`]),
 /// so the stem's int8 kernel, as stored, is also the weight matrix of a 1x1 convolution
 /// over these patches, with no repacking.
 ///
-/// [`int8_quad_index`]: crate::kernels::int8_quad_index
+/// [`int8_quad_index`]: crate::shape::int8_quad_index
 pub const PATCH_CHANNELS: usize = STEM_KERNEL * STEM_KERNEL * QUAD;
 
 /// `(rows, columns)` of the image with the stem's zero padding around it.

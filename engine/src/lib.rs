@@ -40,11 +40,13 @@ pub mod error;
 pub mod format;
 pub mod frame;
 pub mod kernels;
+pub mod layer;
 pub mod plan;
 pub mod policy;
 pub mod pyramid;
 pub mod rng;
 pub mod scheduler;
+pub mod shape;
 pub mod weights;
 
 pub use anchors::Camera;

@@ -17,6 +17,7 @@
 //! 64-byte boundary.
 
 use crate::config::{ModelConfig, PYRAMID_LEVELS, UNET_LEVELS};
+use crate::error::ConfigError;
 use crate::format::ALIGN;
 use crate::frame;
 use crate::kernels::CodeRows;
@@ -100,8 +101,25 @@ impl ArenaPlan {
     }
 
     /// Bytes of the arena `config` needs, exactly, whatever the width of `usize`.
-    pub(crate) const fn arena_bytes_u64(config: &ModelConfig) -> u64 {
+    const fn arena_bytes_u64(config: &ModelConfig) -> u64 {
         Lengths::new(config).arena_bytes
+    }
+}
+
+impl ModelConfig {
+    /// Checks every rule the engine and the weights tool rely on: the fields'
+    /// ([`ModelConfig::validate_fields`]) and that one inference's buffers fit the address
+    /// space. `const` so a firmware build can reject a bad configuration at compile time.
+    pub const fn validate(&self) -> Result<(), ConfigError> {
+        if let Err(error) = self.validate_fields() {
+            return Err(error);
+        }
+        // Legal sizes can still ask for more memory than a 32-bit target can address (8
+        // frames of 4096x4096 pyramids); refused here so no length ever wraps around.
+        if ArenaPlan::arena_bytes_u64(self) > isize::MAX as u64 {
+            return Err(ConfigError::ArenaTooLarge);
+        }
+        Ok(())
     }
 }
 

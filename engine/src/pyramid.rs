@@ -1,13 +1,11 @@
 //! Frame -> feature pyramid: the ResNet-18 trunk's taps C1..C5 and their 3x3 projections
 //! F1..F5 (SPEC section 2), once per frame.
 
-use crate::config::ModelConfig;
-use crate::config::PYRAMID_LEVELS;
-use crate::frame::{self, PATCH_CHANNELS, STEM_KERNEL, STEM_PADDING, STEM_STRIDE};
+use crate::config::{ModelConfig, PYRAMID_LEVELS, STEM_KERNEL, STEM_PADDING, STEM_STRIDE};
+use crate::frame::{self, PATCH_CHANNELS};
 use crate::kernels::ops::{self, Activation};
-use crate::kernels::{
-    self, Accumulate, Activations, ByteRows, ConvShape, DigitRows, Kernels, QuantizeScratch,
-};
+use crate::kernels::{Accumulate, ByteRows, ConvShape, DigitRows, Kernels, QuantizeScratch};
+use crate::layer::{self, Activations};
 use crate::plan::FrameLayout;
 use crate::weights::{Conv, ConvNorm, PyramidWeights, Weight};
 
@@ -130,7 +128,7 @@ struct LevelStore<'s> {
     map: &'s mut [f32],
     taps: &'s mut [f32],
     /// The scale of `taps` when int8 and whether they are all nonnegative (1 or 0), as
-    /// [`kernels::store_input`] returned them (empty for a dense level).
+    /// [`layer::store_input`] returned them (empty for a dense level).
     tap_scale: &'s mut [f32],
     computed: &'s mut [u32],
 }
@@ -216,14 +214,14 @@ impl<'a> FrameStore<'a> {
             }
             store.computed[word] |= bit;
             if batch.is_full() {
-                kernels::convolve_pixels(kernels, &shape, input, projection, &batch, store.map);
+                layer::convolve_pixels(kernels, &shape, input, projection, &batch, store.map);
                 batch.clear();
             }
             // Room was made just above.
             let _ = batch.push((row, column));
         }
         if !batch.is_empty() {
-            kernels::convolve_pixels(kernels, &shape, input, projection, &batch, store.map);
+            layer::convolve_pixels(kernels, &shape, input, projection, &batch, store.map);
         }
     }
 
@@ -442,7 +440,7 @@ pub fn encode(
                 } = frame.level(config, level);
                 if config.projection_on_demand(level) {
                     let (scale, nonnegative) =
-                        kernels::store_input(kernels, &projection.weight, values, taps);
+                        layer::store_input(kernels, &projection.weight, values, taps);
                     tap_scale[0] = scale;
                     tap_scale[1] = f32::from(u8::from(nonnegative));
                     computed.fill(0);
@@ -509,12 +507,12 @@ pub fn encode(
     let values = &buffers[0][..shape.input_len()];
     if config.projection_on_demand(level) {
         let (scale, nonnegative) =
-            kernels::store_input(kernels, &projection.weight, values, store.taps);
+            layer::store_input(kernels, &projection.weight, values, store.taps);
         store.tap_scale[0] = scale;
         store.tap_scale[1] = f32::from(u8::from(nonnegative));
         store.computed.fill(0);
     } else {
-        kernels::convolve(
+        layer::convolve(
             kernels,
             &shape,
             values,

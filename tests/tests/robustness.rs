@@ -257,7 +257,10 @@ fn wrong_version_is_unsupported_version() {
         for file in [stale, fixed] {
             assert_eq!(
                 load(&file),
-                Err(Error::UnsupportedVersion { found: version })
+                Err(Error::UnsupportedVersion {
+                    found: version,
+                    supported: current
+                })
             );
         }
     }

@@ -20,8 +20,14 @@ pub mod scalar;
 #[cfg(target_arch = "x86_64")]
 pub mod x86_64;
 
-use crate::weights::Weight;
 use ops::Activation;
+
+// The plain shapes the kernels' contract is written in, under the names the kernels have
+// always exported them by.
+pub use crate::shape::{
+    ConvShape, INT8_CHANNEL_BLOCK, QUAD, int8_convolution, int8_quad_index, int8_quad_stride,
+    int8_quads, int8_stored_elements, pack_int8_quads,
+};
 
 /// Which kernel implementation to run.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -87,211 +93,10 @@ fn avx512() -> Option<&'static dyn Kernels> {
     None
 }
 
-/// Shape of a 2-D convolution over channels-last maps (`[H, W, C]`), weights packed
-/// `[kernel_height, kernel_width, in_channels, out_channels]`. A 1-D convolution over
-/// `[T, C]` is the same with height 1.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct ConvShape {
-    pub in_height: usize,
-    pub in_width: usize,
-    pub in_channels: usize,
-    pub out_channels: usize,
-    pub kernel_height: usize,
-    pub kernel_width: usize,
-    pub stride: usize,
-    pub padding_height: usize,
-    pub padding_width: usize,
-}
-
-impl ConvShape {
-    /// A square 2-D convolution.
-    pub const fn square(
-        (in_height, in_width, in_channels): (usize, usize, usize),
-        out_channels: usize,
-        kernel: usize,
-        stride: usize,
-        padding: usize,
-    ) -> Self {
-        ConvShape {
-            in_height,
-            in_width,
-            in_channels,
-            out_channels,
-            kernel_height: kernel,
-            kernel_width: kernel,
-            stride,
-            padding_height: padding,
-            padding_width: padding,
-        }
-    }
-
-    /// A 1-D convolution over `[length, in_channels]`.
-    pub const fn sequence(
-        length: usize,
-        in_channels: usize,
-        out_channels: usize,
-        kernel: usize,
-        stride: usize,
-        padding: usize,
-    ) -> Self {
-        ConvShape {
-            in_height: 1,
-            in_width: length,
-            in_channels,
-            out_channels,
-            kernel_height: 1,
-            kernel_width: kernel,
-            stride,
-            padding_height: 0,
-            padding_width: padding,
-        }
-    }
-
-    pub const fn out_height(&self) -> usize {
-        crate::config::conv_output(
-            self.in_height,
-            self.kernel_height,
-            self.stride,
-            self.padding_height,
-        )
-    }
-
-    pub const fn out_width(&self) -> usize {
-        crate::config::conv_output(
-            self.in_width,
-            self.kernel_width,
-            self.stride,
-            self.padding_width,
-        )
-    }
-
-    pub const fn input_len(&self) -> usize {
-        self.in_height * self.in_width * self.in_channels
-    }
-
-    pub const fn output_len(&self) -> usize {
-        self.out_height() * self.out_width() * self.out_channels
-    }
-
-    pub const fn weight_len(&self) -> usize {
-        self.kernel_height * self.kernel_width * self.in_channels * self.out_channels
-    }
-
-    /// Length of the kernel in the int8 layout of [`Kernels::conv_int8`]: input channels in
-    /// zero-padded quads, see [`int8_quad_index`].
-    pub const fn int8_weight_len(&self) -> usize {
-        self.kernel_height
-            * self.kernel_width
-            * int8_quads(self.in_channels)
-            * QUAD
-            * self.out_channels
-    }
-
-    /// [`int8_quad_index`] of this convolution's `(tap, input, output)` weight.
-    pub const fn int8_index(&self, tap: usize, input: usize, output: usize) -> usize {
-        int8_quad_index(
-            self.kernel_height * self.kernel_width,
-            self.in_channels,
-            self.out_channels,
-            (tap, input, output),
-        )
-    }
-}
-
-/// Input channels grouped per output channel in the int8 kernels of 2-D convolutions.
-pub const QUAD: usize = 4;
-
-/// Quads covering `in_channels` (the last one zero-padded when `in_channels % 4 != 0`).
-pub const fn int8_quads(in_channels: usize) -> usize {
-    in_channels.div_ceil(QUAD)
-}
-
-/// Output channels whose quads an int8 kernel stores together: a whole block (the last
-/// may be narrower) before the next, every tap and quad of it. A SIMD tile walks one block's
-/// taps and quads in address order, so its weights stream from contiguous memory and spread
-/// over every cache set; with the channels of a quad row side by side over all of
-/// `out_channels`, the rows a tile read were `4 out_channels` bytes apart, a power of two
-/// in ResNet, and crowded into a sixteenth of L1's and L2's sets.
-pub const INT8_CHANNEL_BLOCK: usize = 64;
-
-/// Where weight `(tap, input, output)` of a convolution of `taps` kernel taps lives in its
-/// int8 kernel: the layout `[ceil(out / 64), taps, ceil(in / 4), block, 4]` ("input-channel
-/// quads in blocks of output channels", `block` the width of the channel's
-/// [`INT8_CHANNEL_BLOCK`]). For each tap, quad and output channel, four consecutive input
-/// channels are adjacent, which is what the integer dot-product instructions (`vpdpbusd`,
-/// `vpmaddubsw`) multiply and add at once; 16 output channels of one quad are one 64-byte
-/// load, and a channel's next quad is [`int8_quad_stride`] bytes further.
-pub const fn int8_quad_index(
-    taps: usize,
-    in_channels: usize,
-    out_channels: usize,
-    (tap, input, output): (usize, usize, usize),
-) -> usize {
-    let quads = int8_quads(in_channels);
-    let block_start = output / INT8_CHANNEL_BLOCK * INT8_CHANNEL_BLOCK;
-    let width = int8_quad_stride(out_channels, output) / QUAD;
-    block_start * taps * quads * QUAD
-        + ((tap * quads + input / QUAD) * width + output - block_start) * QUAD
-        + input % QUAD
-}
-
-/// Bytes from a quad of output channel `output` to its next quad in the int8 layout of
-/// [`int8_quad_index`]: four times the width of the channel's block.
-pub const fn int8_quad_stride(out_channels: usize, output: usize) -> usize {
-    let block_start = output / INT8_CHANNEL_BLOCK * INT8_CHANNEL_BLOCK;
-    let rest = out_channels - block_start;
-    let width = if rest < INT8_CHANNEL_BLOCK {
-        rest
-    } else {
-        INT8_CHANNEL_BLOCK
-    };
-    width * QUAD
-}
-
-/// An int8 tensor's dims read as a convolution kernel: `[kh, kw, in, out]` (2-D) or
-/// `[k, in, out]` (1-D) give `(taps, in, out)`; any other rank (the FiLM matrices) is not a
-/// convolution. `None` too when `kh kw` overflows (the dims may come from a file).
-pub fn int8_convolution(dims: &[usize]) -> Option<(usize, usize, usize)> {
-    match *dims {
-        [height, width, inputs, outputs] => Some((height.checked_mul(width)?, inputs, outputs)),
-        [taps, inputs, outputs] => Some((taps, inputs, outputs)),
-        _ => None,
-    }
-}
-
-/// Elements an int8 tensor of `dims` stores: a convolution kernel in input-channel quads
-/// (`taps x 4 ceil(in / 4) x out`, [`int8_quad_index`]), anything else as its dims say.
-/// `None` when that overflows.
-pub fn int8_stored_elements(dims: &[usize]) -> Option<usize> {
-    match int8_convolution(dims) {
-        Some((taps, inputs, outputs)) => taps
-            .checked_mul(int8_quads(inputs) * QUAD)?
-            .checked_mul(outputs),
-        None => dims
-            .iter()
-            .try_fold(1usize, |product, &dim| product.checked_mul(dim)),
-    }
-}
-
 /// Whether an int8 tensor of `dims` can be run: a convolution's exact i32 code sums hold up
 /// to [`MAX_DIGIT_CHANNELS`] inputs (wider ones are stored in f32 by the tool).
 pub fn int8_fits(dims: &[usize]) -> bool {
     int8_convolution(dims).is_none_or(|(_, inputs, _)| inputs <= MAX_DIGIT_CHANNELS)
-}
-
-/// Packs `weight` (`[taps, in, out]`, the f32 layout) into the int8 quad layout `packed`
-/// (`taps * ceil(in / 4) * 4 * out` values; the padding channels are written as 0).
-pub fn pack_int8_quads(weight: &[i8], in_channels: usize, out_channels: usize, packed: &mut [i8]) {
-    let taps = weight.len() / (in_channels * out_channels).max(1);
-    packed.fill(0);
-    for tap in 0..taps {
-        for input in 0..in_channels {
-            for output in 0..out_channels {
-                packed[int8_quad_index(taps, in_channels, out_channels, (tap, input, output))] =
-                    weight[(tap * in_channels + input) * out_channels + output];
-            }
-        }
-    }
 }
 
 /// Whether a convolution overwrites its output or adds to it (residual connections).
@@ -661,67 +466,6 @@ impl QuantizeScratch<'_> {
     }
 }
 
-/// How a layer with int8 weights quantizes its input (one scale for the whole input,
-/// 15-bit codes either way).
-#[derive(Debug)]
-pub enum Activations<'s, 'a> {
-    /// Two digit planes for unsigned-by-signed byte dot products: the trunk, whose inputs
-    /// are ReLU outputs.
-    Digits(&'s mut QuantizeScratch<'a>),
-    /// Whole signed codes for 16-bit dot products: the U-Net, whose inputs have both signs.
-    Codes(&'s mut QuantizeScratch<'a>),
-}
-
-/// A convolution with whichever weights the file holds.
-#[allow(clippy::too_many_arguments)]
-pub fn convolve(
-    kernels: &dyn Kernels,
-    shape: &ConvShape,
-    input: &[f32],
-    weight: &Weight<'_>,
-    bias: &[f32],
-    output: &mut [f32],
-    accumulate: Accumulate,
-    activations: Activations<'_, '_>,
-) {
-    let input = &input[..shape.input_len()];
-    let output = &mut output[..shape.output_len()];
-    match (*weight, activations) {
-        (Weight::F32(values), _) => kernels.conv(shape, input, values, bias, output, accumulate),
-        (Weight::Int8 { values, scales }, Activations::Digits(scratch)) => {
-            let digits = scratch.quantize(kernels, input);
-            kernels.conv_int8(shape, &digits, values, scales, bias, output, accumulate)
-        }
-        (Weight::Int8 { values, scales }, Activations::Codes(scratch)) => {
-            let codes = scratch.quantize_codes(kernels, input, shape.in_channels);
-            kernels.conv_int8_codes(shape, &codes, values, scales, bias, output, accumulate)
-        }
-    }
-}
-
-/// Keeps a layer's input for later [`convolve_pixels`] calls, in the form its weights
-/// read: copied for f32 weights; quantized for int8 weights, the two digit planes as bytes
-/// at the front of `values`. Returns the input's scale (1 for f32 weights, unused) and
-/// whether every code is nonnegative (true for f32 weights).
-pub fn store_input(
-    kernels: &dyn Kernels,
-    weight: &Weight<'_>,
-    input: &[f32],
-    values: &mut [f32],
-) -> (f32, bool) {
-    match weight {
-        Weight::F32(_) => {
-            values[..input.len()].copy_from_slice(input);
-            (1.0, true)
-        }
-        Weight::Int8 { .. } => {
-            let bytes: &mut [i8] = bytemuck::cast_slice_mut(values);
-            let (high, low) = bytes[..2 * input.len()].split_at_mut(input.len());
-            kernels.quantize_digits(input, (high, low))
-        }
-    }
-}
-
 /// [`Kernels::conv_int8_pixels`] one [`Kernels::conv_int8_pixel`] at a time.
 pub fn each_pixel<K: Kernels + ?Sized>(
     kernels: &K,
@@ -743,58 +487,5 @@ pub fn each_pixel<K: Kernels + ?Sized>(
             (row, column),
             out,
         );
-    }
-}
-
-/// Output pixels `pixels` of [`convolve`] with [`Accumulate::Overwrite`], into their places
-/// in `output` (the whole map), from an input kept by [`store_input`] (`values` and the
-/// scale and sign flag it returned).
-pub fn convolve_pixels(
-    kernels: &dyn Kernels,
-    shape: &ConvShape,
-    (values, scale, nonnegative): (&[f32], f32, bool),
-    (weight, bias): (&Weight<'_>, &[f32]),
-    pixels: &[(usize, usize)],
-    output: &mut [f32],
-) {
-    let (out_width, out_channels) = (shape.out_width(), shape.out_channels);
-    match *weight {
-        Weight::F32(weights) => {
-            let input = &values[..shape.input_len()];
-            for &(row, column) in pixels {
-                let out = &mut output[(row * out_width + column) * out_channels..][..out_channels];
-                kernels.conv_pixel(shape, input, weights, bias, (row, column), out);
-            }
-        }
-        Weight::Int8 {
-            values: weights,
-            scales: weight_scales,
-        } => {
-            let values: &[i8] = &bytemuck::cast_slice(values)[..2 * shape.input_len()];
-            let digits = DigitRows::from_planes(values, scale, nonnegative);
-            kernels.conv_int8_pixels(shape, &digits, weights, weight_scales, bias, pixels, output)
-        }
-    }
-}
-
-/// `output = base + W input` with whichever weights the file holds; int8 weights multiply
-/// the input's 15-bit codes, quantized into `quantized` (the U-Net's scheme): the FiLM
-/// layers read each weight once, and integer products take one instruction for what
-/// widening every weight to f32 took three.
-pub fn linear(
-    kernels: &dyn Kernels,
-    weight: &Weight<'_>,
-    input: &[f32],
-    (base, output): (&[f32], &mut [f32]),
-    quantized: &mut QuantizeScratch<'_>,
-) {
-    match *weight {
-        Weight::F32(values) => kernels.matvec(values, input, base, output),
-        // No codes to make of no input; the sums are empty.
-        Weight::Int8 { .. } if input.is_empty() => output.copy_from_slice(base),
-        Weight::Int8 { values, scales } => {
-            let codes = quantized.quantize_codes(kernels, input, input.len());
-            kernels.matvec_int8_codes(values, scales, &codes, base, output)
-        }
     }
 }

@@ -397,8 +397,8 @@ fn pool_windows(
     output: &mut [f32],
     mut take: impl FnMut(&mut [f32], &[f32]),
 ) {
-    let out_height = crate::config::conv_output(height, 3, 2, 1);
-    let out_width = crate::config::conv_output(width, 3, 2, 1);
+    let out_height = crate::shape::conv_output(height, 3, 2, 1);
+    let out_width = crate::shape::conv_output(width, 3, 2, 1);
     debug_assert_eq!(output.len(), out_height * out_width * channels);
     for (position, out) in output.chunks_exact_mut(channels).enumerate() {
         let out_y = position / out_width;

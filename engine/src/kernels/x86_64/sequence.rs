@@ -57,7 +57,7 @@ impl Sequence {
         stride: usize,
         padding: usize,
     ) -> Self {
-        let positions = crate::config::conv_output(in_length, taps, stride, padding);
+        let positions = crate::shape::conv_output(in_length, taps, stride, padding);
         Sequence {
             in_length,
             in_channels,

@@ -1,0 +1,121 @@
+//! One layer of the model with whichever weights the file holds: f32 weights go to the f32
+//! kernels, int8 weights have their input quantized first (the trunk's to digit planes, the
+//! U-Net's to whole codes) and go to the integer kernels. The bridge between the weights
+//! file's types and the kernels, which know neither the file nor the model.
+
+use crate::kernels::{Accumulate, ConvShape, DigitRows, Kernels, QuantizeScratch};
+use crate::weights::Weight;
+
+/// How a layer with int8 weights quantizes its input (one scale for the whole input,
+/// 15-bit codes either way).
+#[derive(Debug)]
+pub enum Activations<'s, 'a> {
+    /// Two digit planes for unsigned-by-signed byte dot products: the trunk, whose inputs
+    /// are ReLU outputs.
+    Digits(&'s mut QuantizeScratch<'a>),
+    /// Whole signed codes for 16-bit dot products: the U-Net, whose inputs have both signs.
+    Codes(&'s mut QuantizeScratch<'a>),
+}
+
+/// A convolution with whichever weights the file holds.
+#[allow(clippy::too_many_arguments)]
+pub fn convolve(
+    kernels: &dyn Kernels,
+    shape: &ConvShape,
+    input: &[f32],
+    weight: &Weight<'_>,
+    bias: &[f32],
+    output: &mut [f32],
+    accumulate: Accumulate,
+    activations: Activations<'_, '_>,
+) {
+    let input = &input[..shape.input_len()];
+    let output = &mut output[..shape.output_len()];
+    match (*weight, activations) {
+        (Weight::F32(values), _) => kernels.conv(shape, input, values, bias, output, accumulate),
+        (Weight::Int8 { values, scales }, Activations::Digits(scratch)) => {
+            let digits = scratch.quantize(kernels, input);
+            kernels.conv_int8(shape, &digits, values, scales, bias, output, accumulate)
+        }
+        (Weight::Int8 { values, scales }, Activations::Codes(scratch)) => {
+            let codes = scratch.quantize_codes(kernels, input, shape.in_channels);
+            kernels.conv_int8_codes(shape, &codes, values, scales, bias, output, accumulate)
+        }
+    }
+}
+
+/// Keeps a layer's input for later [`convolve_pixels`] calls, in the form its weights
+/// read: copied for f32 weights; quantized for int8 weights, the two digit planes as bytes
+/// at the front of `values`. Returns the input's scale (1 for f32 weights, unused) and
+/// whether every code is nonnegative (true for f32 weights).
+pub fn store_input(
+    kernels: &dyn Kernels,
+    weight: &Weight<'_>,
+    input: &[f32],
+    values: &mut [f32],
+) -> (f32, bool) {
+    match weight {
+        Weight::F32(_) => {
+            values[..input.len()].copy_from_slice(input);
+            (1.0, true)
+        }
+        Weight::Int8 { .. } => {
+            let bytes: &mut [i8] = bytemuck::cast_slice_mut(values);
+            let (high, low) = bytes[..2 * input.len()].split_at_mut(input.len());
+            kernels.quantize_digits(input, (high, low))
+        }
+    }
+}
+
+/// Output pixels `pixels` of [`convolve`] with [`Accumulate::Overwrite`], into their places
+/// in `output` (the whole map), from an input kept by [`store_input`] (`values` and the
+/// scale and sign flag it returned).
+pub fn convolve_pixels(
+    kernels: &dyn Kernels,
+    shape: &ConvShape,
+    (values, scale, nonnegative): (&[f32], f32, bool),
+    (weight, bias): (&Weight<'_>, &[f32]),
+    pixels: &[(usize, usize)],
+    output: &mut [f32],
+) {
+    let (out_width, out_channels) = (shape.out_width(), shape.out_channels);
+    match *weight {
+        Weight::F32(weights) => {
+            let input = &values[..shape.input_len()];
+            for &(row, column) in pixels {
+                let out = &mut output[(row * out_width + column) * out_channels..][..out_channels];
+                kernels.conv_pixel(shape, input, weights, bias, (row, column), out);
+            }
+        }
+        Weight::Int8 {
+            values: weights,
+            scales: weight_scales,
+        } => {
+            let values: &[i8] = &bytemuck::cast_slice(values)[..2 * shape.input_len()];
+            let digits = DigitRows::from_planes(values, scale, nonnegative);
+            kernels.conv_int8_pixels(shape, &digits, weights, weight_scales, bias, pixels, output)
+        }
+    }
+}
+
+/// `output = base + W input` with whichever weights the file holds; int8 weights multiply
+/// the input's 15-bit codes, quantized into `quantized` (the U-Net's scheme): the FiLM
+/// layers read each weight once, and integer products take one instruction for what
+/// widening every weight to f32 took three.
+pub fn linear(
+    kernels: &dyn Kernels,
+    weight: &Weight<'_>,
+    input: &[f32],
+    (base, output): (&[f32], &mut [f32]),
+    quantized: &mut QuantizeScratch<'_>,
+) {
+    match *weight {
+        Weight::F32(values) => kernels.matvec(values, input, base, output),
+        // No codes to make of no input; the sums are empty.
+        Weight::Int8 { .. } if input.is_empty() => output.copy_from_slice(base),
+        Weight::Int8 { values, scales } => {
+            let codes = quantized.quantize_codes(kernels, input, input.len());
+            kernels.matvec_int8_codes(values, scales, &codes, base, output)
+        }
+    }
+}

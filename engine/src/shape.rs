@@ -1,0 +1,210 @@
+//! Plain shapes, below everything else in the engine: PyTorch's output-size rule, the shape
+//! of a convolution, and where each weight of an int8 convolution kernel lives. The
+//! configuration computes its map sizes with these, the weights file checks its tensors'
+//! lengths with them, and the kernels read their weights by them; none of those needs the
+//! others to do it.
+
+/// Output length of a convolution or pooling window (PyTorch's floor rule).
+pub const fn conv_output(input: usize, kernel: usize, stride: usize, padding: usize) -> usize {
+    (input + 2 * padding - kernel) / stride + 1
+}
+
+/// Shape of a 2-D convolution over channels-last maps (`[H, W, C]`), weights packed
+/// `[kernel_height, kernel_width, in_channels, out_channels]`. A 1-D convolution over
+/// `[T, C]` is the same with height 1.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ConvShape {
+    pub in_height: usize,
+    pub in_width: usize,
+    pub in_channels: usize,
+    pub out_channels: usize,
+    pub kernel_height: usize,
+    pub kernel_width: usize,
+    pub stride: usize,
+    pub padding_height: usize,
+    pub padding_width: usize,
+}
+
+impl ConvShape {
+    /// A square 2-D convolution.
+    pub const fn square(
+        (in_height, in_width, in_channels): (usize, usize, usize),
+        out_channels: usize,
+        kernel: usize,
+        stride: usize,
+        padding: usize,
+    ) -> Self {
+        ConvShape {
+            in_height,
+            in_width,
+            in_channels,
+            out_channels,
+            kernel_height: kernel,
+            kernel_width: kernel,
+            stride,
+            padding_height: padding,
+            padding_width: padding,
+        }
+    }
+
+    /// A 1-D convolution over `[length, in_channels]`.
+    pub const fn sequence(
+        length: usize,
+        in_channels: usize,
+        out_channels: usize,
+        kernel: usize,
+        stride: usize,
+        padding: usize,
+    ) -> Self {
+        ConvShape {
+            in_height: 1,
+            in_width: length,
+            in_channels,
+            out_channels,
+            kernel_height: 1,
+            kernel_width: kernel,
+            stride,
+            padding_height: 0,
+            padding_width: padding,
+        }
+    }
+
+    pub const fn out_height(&self) -> usize {
+        conv_output(
+            self.in_height,
+            self.kernel_height,
+            self.stride,
+            self.padding_height,
+        )
+    }
+
+    pub const fn out_width(&self) -> usize {
+        conv_output(
+            self.in_width,
+            self.kernel_width,
+            self.stride,
+            self.padding_width,
+        )
+    }
+
+    pub const fn input_len(&self) -> usize {
+        self.in_height * self.in_width * self.in_channels
+    }
+
+    pub const fn output_len(&self) -> usize {
+        self.out_height() * self.out_width() * self.out_channels
+    }
+
+    pub const fn weight_len(&self) -> usize {
+        self.kernel_height * self.kernel_width * self.in_channels * self.out_channels
+    }
+
+    /// Length of the kernel in the int8 layout: input channels in zero-padded quads, see
+    /// [`int8_quad_index`].
+    pub const fn int8_weight_len(&self) -> usize {
+        self.kernel_height
+            * self.kernel_width
+            * int8_quads(self.in_channels)
+            * QUAD
+            * self.out_channels
+    }
+
+    /// [`int8_quad_index`] of this convolution's `(tap, input, output)` weight.
+    pub const fn int8_index(&self, tap: usize, input: usize, output: usize) -> usize {
+        int8_quad_index(
+            self.kernel_height * self.kernel_width,
+            self.in_channels,
+            self.out_channels,
+            (tap, input, output),
+        )
+    }
+}
+/// Input channels grouped per output channel in the int8 kernels of 2-D convolutions.
+pub const QUAD: usize = 4;
+
+/// Quads covering `in_channels` (the last one zero-padded when `in_channels % 4 != 0`).
+pub const fn int8_quads(in_channels: usize) -> usize {
+    in_channels.div_ceil(QUAD)
+}
+
+/// Output channels whose quads an int8 kernel stores together: a whole block (the last
+/// may be narrower) before the next, every tap and quad of it. A SIMD tile walks one block's
+/// taps and quads in address order, so its weights stream from contiguous memory and spread
+/// over every cache set; with the channels of a quad row side by side over all of
+/// `out_channels`, the rows a tile read were `4 out_channels` bytes apart, a power of two
+/// in ResNet, and crowded into a sixteenth of L1's and L2's sets.
+pub const INT8_CHANNEL_BLOCK: usize = 64;
+
+/// Where weight `(tap, input, output)` of a convolution of `taps` kernel taps lives in its
+/// int8 kernel: the layout `[ceil(out / 64), taps, ceil(in / 4), block, 4]` ("input-channel
+/// quads in blocks of output channels", `block` the width of the channel's
+/// [`INT8_CHANNEL_BLOCK`]). For each tap, quad and output channel, four consecutive input
+/// channels are adjacent, which is what the integer dot-product instructions (`vpdpbusd`,
+/// `vpmaddubsw`) multiply and add at once; 16 output channels of one quad are one 64-byte
+/// load, and a channel's next quad is [`int8_quad_stride`] bytes further.
+pub const fn int8_quad_index(
+    taps: usize,
+    in_channels: usize,
+    out_channels: usize,
+    (tap, input, output): (usize, usize, usize),
+) -> usize {
+    let quads = int8_quads(in_channels);
+    let block_start = output / INT8_CHANNEL_BLOCK * INT8_CHANNEL_BLOCK;
+    let width = int8_quad_stride(out_channels, output) / QUAD;
+    block_start * taps * quads * QUAD
+        + ((tap * quads + input / QUAD) * width + output - block_start) * QUAD
+        + input % QUAD
+}
+
+/// Bytes from a quad of output channel `output` to its next quad in the int8 layout of
+/// [`int8_quad_index`]: four times the width of the channel's block.
+pub const fn int8_quad_stride(out_channels: usize, output: usize) -> usize {
+    let block_start = output / INT8_CHANNEL_BLOCK * INT8_CHANNEL_BLOCK;
+    let rest = out_channels - block_start;
+    let width = if rest < INT8_CHANNEL_BLOCK {
+        rest
+    } else {
+        INT8_CHANNEL_BLOCK
+    };
+    width * QUAD
+}
+
+/// An int8 tensor's dims read as a convolution kernel: `[kh, kw, in, out]` (2-D) or
+/// `[k, in, out]` (1-D) give `(taps, in, out)`; any other rank (the FiLM matrices) is not a
+/// convolution. `None` too when `kh kw` overflows (the dims may come from a file).
+pub fn int8_convolution(dims: &[usize]) -> Option<(usize, usize, usize)> {
+    match *dims {
+        [height, width, inputs, outputs] => Some((height.checked_mul(width)?, inputs, outputs)),
+        [taps, inputs, outputs] => Some((taps, inputs, outputs)),
+        _ => None,
+    }
+}
+
+/// Elements an int8 tensor of `dims` stores: a convolution kernel in input-channel quads
+/// (`taps x 4 ceil(in / 4) x out`, [`int8_quad_index`]), anything else as its dims say.
+/// `None` when that overflows.
+pub fn int8_stored_elements(dims: &[usize]) -> Option<usize> {
+    match int8_convolution(dims) {
+        Some((taps, inputs, outputs)) => taps
+            .checked_mul(int8_quads(inputs) * QUAD)?
+            .checked_mul(outputs),
+        None => dims
+            .iter()
+            .try_fold(1usize, |product, &dim| product.checked_mul(dim)),
+    }
+}
+
+/// Packs `weight` (`[taps, in, out]`, the f32 layout) into the int8 quad layout `packed`
+/// (`taps * ceil(in / 4) * 4 * out` values; the padding channels are written as 0).
+pub fn pack_int8_quads(weight: &[i8], in_channels: usize, out_channels: usize, packed: &mut [i8]) {
+    let taps = weight.len() / (in_channels * out_channels).max(1);
+    packed.fill(0);
+    for tap in 0..taps {
+        for input in 0..in_channels {
+            for output in 0..out_channels {
+                packed[int8_quad_index(taps, in_channels, out_channels, (tap, input, output))] =
+                    weight[(tap * in_channels + input) * out_channels + output];
+            }
+        }
+    }
+}
