@@ -1,0 +1,531 @@
+"""SCDP in Meta-World: collect expert demonstrations, train, evaluate in closed loop.
+
+    python -m scdp.metaworld collect --task TASK --model-dir DIR [--episodes 20 --first-seed 0]
+    python -m scdp.metaworld train   --model-dir DIR [--steps 5000]
+    python -m scdp.metaworld eval    --task TASK --model-dir DIR --runtime RUNTIME \
+                                     --episodes N --first-seed S
+
+`collect` and `train` need PyTorch only for training; `eval --runtime engine-f32|engine-int8`
+needs only this package and Meta-World. The last line `eval` prints is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import pickle
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+from . import sim
+
+DEMOS = "demos.npz"
+CONFIG = "model.toml"
+CHECKPOINT = "checkpoint.ckpt"
+CAMERA = "camera.safetensors"
+TRAINING = "training"
+# Evaluation seeds start here by default, far from the demonstrations' 0..19.
+DEFAULT_EVAL_SEED = 1000
+
+
+# --------------------------------------------------------------------------------------------
+# collect
+
+
+def collect(task: str, model_dir: Path, episodes: int, first_seed: int) -> None:
+    scene = sim.Scene(task)
+    images, states, actions, ends, seeds = [], [], [], [], []
+    seed = first_seed
+    while len(seeds) < episodes:
+        scene.reset(seed)
+        episode = ([], [], [])
+        solved = False
+        for _ in range(scene.max_steps):
+            episode[0].append(scene.render())
+            episode[1].append(scene.state())
+            action = scene.expert_action()
+            episode[2].append(action)
+            if scene.step(action):
+                solved = True
+                break
+        if solved:
+            for store, values in zip((images, states, actions), episode):
+                store.extend(values)
+            ends.append(len(images))
+            seeds.append(seed)
+            print(f"seed {seed}: {len(episode[0])} steps", file=sys.stderr)
+        else:
+            print(f"seed {seed}: the expert did not succeed; skipped", file=sys.stderr)
+        seed += 1
+    camera_k, camera_t = scene.camera_model()
+    model_dir.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(
+        model_dir / DEMOS, images=np.stack(images), state=np.stack(states), action=np.stack(actions),
+        episode_ends=np.array(ends), seeds=np.array(seeds), camera_k=camera_k, camera_t=camera_t,
+        task=np.array(task),
+    )
+    write_camera(model_dir / CAMERA, camera_k, camera_t)
+    print(json.dumps({"task": task, "episodes": len(seeds), "seeds": seeds, "frames": len(images)}))
+
+
+def write_camera(path: Path, camera_k: np.ndarray, camera_t: np.ndarray) -> None:
+    from safetensors.numpy import save_file
+
+    save_file({"camera_k": camera_k.astype(np.float32), "camera_t": camera_t.astype(np.float32)}, str(path))
+
+
+def write_calibration(model_dir: Path, count: int) -> None:
+    """Run files (`weights-tool convert --calibrate`) of `count` training windows spread evenly
+    over the demonstrations: the int8 rounding is fitted on frames the policy was trained on,
+    never on evaluation episodes."""
+    from safetensors.numpy import save_file
+
+    cfg = load_config(model_dir)
+    demos = dict(np.load(model_dir / DEMOS))
+    sequences = Sequences(demos, cfg)
+    folder = model_dir / "calibration"
+    folder.mkdir(exist_ok=True)
+    rng = np.random.default_rng(0)
+    for number, row in enumerate(np.linspace(0, len(sequences.windows) - 1, count).round().astype(int)):
+        observed = sequences.windows[row][: cfg["n_obs_steps"]]
+        save_file({
+            "images": np.ascontiguousarray(demos["images"][observed]),
+            "state": np.ascontiguousarray(demos["state"][observed]),
+            "noise": rng.standard_normal((cfg["horizon"], cfg["action_dim"])).astype(np.float32),
+            "camera_k": demos["camera_k"], "camera_t": demos["camera_t"],
+        }, str(folder / f"{number:03d}.safetensors"))
+    print(f"{count} calibration run files in {folder}", file=sys.stderr)
+
+
+# --------------------------------------------------------------------------------------------
+# train
+
+
+def load_config(model_dir: Path) -> dict:
+    with open(model_dir / CONFIG, "rb") as f:
+        return tomllib.load(f)
+
+
+class Sequences:
+    """Diffusion Policy's SequenceSampler: windows of `horizon` steps whose first `To` are the
+    observations, starting up to To - 1 steps before an episode and ending up to
+    n_action_steps - 1 steps after it, padded with the episode's first / last values."""
+
+    def __init__(self, demos, cfg: dict):
+        self.images, self.state, self.action = demos["images"], demos["state"], demos["action"]
+        self.frames, self.horizon = cfg["n_obs_steps"], cfg["horizon"]
+        windows = []
+        start = 0
+        for end in demos["episode_ends"]:
+            length = end - start
+            for first in range(-(self.frames - 1), length - self.horizon + cfg["n_action_steps"]):
+                windows.append(start + np.clip(first + np.arange(self.horizon), 0, length - 1))
+            start = end
+        self.windows = np.stack(windows)
+
+    def batch(self, rng: np.random.Generator, size: int):
+        rows = self.windows[rng.integers(0, len(self.windows), size)]
+        observed = rows[:, : self.frames]
+        return self.images[observed], self.state[observed], self.action[rows]
+
+
+def workspace_checkpoint(cfg: dict, model, ema, optimizer, scheduler, step: int, total_steps: int,
+                         rng_state, half: bool) -> dict:
+    """Diffusion Policy's BaseWorkspace.save_checkpoint layout: cfg (OmegaConf), state_dicts,
+    pickles. With `half`, only the EMA weights, as float16: what ships."""
+    from omegaconf import OmegaConf
+
+    workspace_cfg = OmegaConf.create({
+        "name": "train_scdp_metaworld",
+        "task_name": cfg.get("task", ""),
+        "horizon": cfg["horizon"], "n_obs_steps": cfg["n_obs_steps"], "n_action_steps": cfg["n_action_steps"],
+        "policy": {k: v for k, v in cfg.items() if k != "task"},
+        "training": {"num_steps": total_steps, "lr_scheduler": "cosine", "lr_warmup_steps": 500,
+                     "use_ema": True, "batch_size": 32},
+        "optimizer": {"_target_": "torch.optim.AdamW", "lr": 1.0e-4, "betas": [0.95, 0.999],
+                      "eps": 1.0e-8, "weight_decay": 1.0e-6},
+    })
+    if half:
+        state_dicts = {"ema_model": {k: v.half() if v.is_floating_point() else v
+                                     for k, v in ema.averaged.state_dict().items()}}
+    else:
+        state_dicts = {"model": model.state_dict(), "ema_model": ema.averaged.state_dict(),
+                       "optimizer": optimizer.state_dict(), "lr_scheduler": scheduler.state_dict()}
+    pickles = {"global_step": pickle.dumps(step)}
+    if not half:
+        pickles["rng"] = pickle.dumps(rng_state)
+        pickles["ema_optimization_step"] = pickle.dumps(ema.optimization_step)
+    return {"cfg": workspace_cfg, "state_dicts": state_dicts, "pickles": pickles}
+
+
+def train(model_dir: Path, total_steps: int, batch_size: int, checkpoint_every: int, threads: int,
+          precision: str) -> None:
+    import torch
+
+    from .torch_policy import EMAModel, SCDPPolicy
+
+    torch.set_num_threads(threads)
+    cfg = load_config(model_dir)
+    demos = dict(np.load(model_dir / DEMOS))
+    sequences = Sequences(demos, cfg)
+    camera_k = torch.as_tensor(demos["camera_k"]).expand(batch_size, 3, 3)
+    camera_t = torch.as_tensor(demos["camera_t"]).expand(batch_size, 4, 4)
+    torch.manual_seed(0)
+    model = SCDPPolicy(cfg)
+    model.normalizer.fit("action", demos["action"])
+    model.normalizer.fit("agent_pos", demos["state"])
+    ema = EMAModel(model)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-4, betas=(0.95, 0.999), eps=1e-8, weight_decay=1e-6)
+    warmup = 500
+
+    def lr_factor(step):
+        # diffusers' get_cosine_schedule_with_warmup
+        if step < warmup:
+            return step / max(1, warmup)
+        progress = (step - warmup) / max(1, total_steps - warmup)
+        return max(0.0, 0.5 * (1 + math.cos(math.pi * progress)))
+
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lr_factor)
+    rng = np.random.default_rng(0)
+    step = 0
+    work = model_dir / TRAINING
+    work.mkdir(exist_ok=True)
+    latest = work / "latest.ckpt"
+    if latest.exists():
+        payload = torch.load(latest, weights_only=False)
+        model.load_state_dict(payload["state_dicts"]["model"])
+        ema.averaged.load_state_dict(payload["state_dicts"]["ema_model"])
+        optimizer.load_state_dict(payload["state_dicts"]["optimizer"])
+        scheduler.load_state_dict(payload["state_dicts"]["lr_scheduler"])
+        step = pickle.loads(payload["pickles"]["global_step"])
+        ema.optimization_step = pickle.loads(payload["pickles"]["ema_optimization_step"])
+        rng.bit_generator.state = pickle.loads(payload["pickles"]["rng"])
+        torch.manual_seed(step)
+        print(f"resumed at step {step}", file=sys.stderr)
+    use_bf16 = precision == "bf16"
+    log = open(work / "log.jsonl", "a")
+    model.train()
+    started = time.time()
+    while step < total_steps:
+        images, state, actions = sequences.batch(rng, batch_size)
+        images, state, actions = (torch.as_tensor(x) for x in (images, state, actions))
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=use_bf16):
+            loss = model.loss(images, state, actions, camera_k, camera_t)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        scheduler.step()
+        ema.step(model)
+        step += 1
+        if step % 50 == 0:
+            record = {"step": step, "loss": float(loss.detach()), "lr": scheduler.get_last_lr()[0],
+                      "seconds": round(time.time() - started, 1)}
+            log.write(json.dumps(record) + "\n")
+            log.flush()
+        if step % checkpoint_every == 0 or step == total_steps:
+            payload = workspace_checkpoint(cfg, model, ema, optimizer, scheduler, step, total_steps,
+                                           rng.bit_generator.state, half=False)
+            torch.save(payload, work / "latest.tmp")
+            (work / "latest.tmp").replace(latest)
+            shipped = workspace_checkpoint(cfg, model, ema, optimizer, scheduler, step, total_steps, None, half=True)
+            torch.save(shipped, work / f"step-{step:06d}.ckpt")
+            print(f"step {step}: loss {float(loss.detach()):.4f}", file=sys.stderr)
+    final = workspace_checkpoint(cfg, model, ema, optimizer, scheduler, step, total_steps, None, half=True)
+    torch.save(final, model_dir / CHECKPOINT)
+
+
+# --------------------------------------------------------------------------------------------
+# runtimes: one interface over PyTorch and the engine
+
+
+class TorchRuntime:
+    """The trained checkpoint in PyTorch, float32: the reference the engine must match."""
+
+    name = "torch"
+
+    def __init__(self, model_dir: Path, threads: int):
+        import torch
+
+        from .torch_policy import SCDPPolicy
+
+        torch.set_num_threads(threads)
+        self.torch = torch
+        self.cfg = load_config(model_dir)
+        payload = torch.load(model_dir / CHECKPOINT, weights_only=False, map_location="cpu")
+        weights = payload["state_dicts"]["ema_model"]
+        self.policy = SCDPPolicy(self.cfg)
+        self.policy.load_state_dict({k: v.float() for k, v in weights.items()})
+        self.policy.eval()
+        self.frames = []
+
+    def reset(self, camera_k, camera_t):
+        self.camera = (self.torch.as_tensor(camera_k)[None], self.torch.as_tensor(camera_t)[None])
+        self.frames = []
+
+    def push(self, image, state):
+        self.frames = (self.frames + [(image, state)])[-self.cfg["n_obs_steps"]:]
+
+    def history(self):
+        """The last To observations, the first repeated until there are To (as the engine)."""
+        frames = [self.frames[0]] * (self.cfg["n_obs_steps"] - len(self.frames)) + self.frames
+        return np.stack([f[0] for f in frames]), np.stack([f[1] for f in frames])
+
+    def infer(self, noise):
+        torch = self.torch
+        images, state = self.history()
+        action_pred, anchors = self.policy.predict(
+            torch.as_tensor(images)[None], torch.as_tensor(state)[None], *self.camera,
+            torch.as_tensor(noise)[None], record_anchors=True,
+        )
+        return action_pred[0].numpy(), anchors[:, 0].numpy()
+
+
+class EngineRuntime:
+    """The engine through this package's binding, on a weights file of `convert`."""
+
+    def __init__(self, model_path: Path, name: str, backend: str = "auto"):
+        from . import Model, Policy
+
+        if not model_path.exists():
+            raise SystemExit(
+                f"{model_path} does not exist; make it with weights-tool convert (see the README)"
+            )
+        self.name = name
+        self.model = Model(str(model_path))
+        self.policy = Policy(self.model, backend=backend)
+
+    def reset(self, camera_k, camera_t):
+        self.policy.reset()
+        self.policy.set_camera(camera_k, camera_t)
+
+    def push(self, image, state):
+        self.policy.push_observation(image, state)
+
+    def infer(self, noise):
+        result = self.policy.infer(noise=noise, full=True)
+        return result["action_pred"], result["anchors_uv"]
+
+
+def make_runtime(runtime: str, model_dir: Path, threads: int, backend: str = "auto"):
+    if runtime == "torch":
+        return TorchRuntime(model_dir, threads)
+    if runtime == "engine-f32":
+        return EngineRuntime(model_dir / "f32.scdp", runtime, backend)
+    if runtime == "engine-int8":
+        return EngineRuntime(model_dir / "int8.scdp", runtime, backend)
+    raise SystemExit(f"unknown runtime {runtime!r}")
+
+
+# --------------------------------------------------------------------------------------------
+# closed loop
+
+
+def episode_noise(seed: int, chunk: int, cfg: dict) -> np.ndarray:
+    """The initial sample of chunk `chunk` of episode `seed`: the same for every runtime, so
+    their rollouts differ only by their arithmetic."""
+    rng = np.random.default_rng([seed, chunk])
+    return rng.standard_normal((cfg["horizon"], cfg["action_dim"])).astype(np.float32)
+
+
+def run_episode(scene, runtime, cfg, seed, record=None, frames=None):
+    """Diffusion Policy's receding horizon: infer from the last To frames, execute the
+    n_action_steps actions from "now" (rows To-1 ..), infer again. The simulation waits for
+    the policy, so no step is skipped for latency. Only the frames the policy sees are
+    rendered (the last To before each inference). `record` (a list, torch runtime only)
+    receives each inference's inputs and output; `frames` each executed step's frame with the
+    anchors of its chunk."""
+    scene.reset(seed)
+    camera_k, camera_t = scene.camera_model()
+    runtime.reset(camera_k, camera_t)
+    first, count = cfg["n_obs_steps"] - 1, cfg["n_action_steps"]
+    steps, chunk, solved, latencies = 0, 0, False, []
+    image, state = scene.render(), scene.state()
+    while steps < scene.max_steps and not solved:
+        noise = episode_noise(seed, chunk, cfg)
+        started = time.perf_counter()
+        runtime.push(image, state)
+        action_pred, anchors = runtime.infer(noise)
+        latencies.append((time.perf_counter() - started) * 1e3)
+        if record is not None:
+            images, states = runtime.history()
+            record.append({"images": images, "state": states, "noise": noise, "camera_k": camera_k,
+                           "camera_t": camera_t, "action_pred": action_pred, "seed": seed, "chunk": chunk})
+        actions = action_pred[first : first + count]
+        for index, action in enumerate(actions):
+            if frames is not None:
+                frames.append((scene.render(), anchors))
+            if index == len(actions) - 1 and cfg["n_obs_steps"] > 1:
+                runtime.push(scene.render(), scene.state())
+            solved = scene.step(action)
+            steps += 1
+            if solved or steps >= scene.max_steps:
+                break
+        image, state = scene.render(), scene.state()
+        chunk += 1
+    return solved, steps, latencies
+
+
+def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backend="auto", gif=None,
+             agreement=False, record_count=0):
+    cfg = load_config(model_dir)
+    demo_seeds = set()
+    if (model_dir / DEMOS).exists():
+        demo_seeds = set(np.load(model_dir / DEMOS)["seeds"].tolist())
+    seeds = list(range(first_seed, first_seed + episodes))
+    if demo_seeds & set(seeds):
+        raise SystemExit(f"seeds {sorted(demo_seeds & set(seeds))} are demonstration seeds")
+    # PyTorch first: its Triton brings an LLVM that crashes when loaded after the one MuJoCo's
+    # OSMesa renderer has already loaded.
+    runtime = make_runtime(runtime_name, model_dir, threads, backend)
+    if agreement and runtime_name != "torch":
+        raise SystemExit("--agreement compares the engine with the torch runtime's rollouts: use --runtime torch")
+    scene = sim.Scene(task)
+    record = [] if agreement else None
+    successes, steps_taken, latencies = 0, [], []
+    for number, seed in enumerate(seeds):
+        frames = [] if gif is not None and number == 0 else None
+        solved, steps, times = run_episode(scene, runtime, cfg, seed, record=record, frames=frames)
+        if frames is not None:
+            write_rollout_gif(gif, frames)
+        successes += solved
+        steps_taken.append(steps)
+        latencies.extend(times)
+        print(f"seed {seed}: {'success' if solved else 'failure'} after {steps} steps", file=sys.stderr)
+    low, high = wilson_interval(successes, episodes)
+    result = {
+        "task": task, "runtime": runtime_name, "episodes": episodes, "successes": successes,
+        "success_rate": successes / episodes, "success_rate_95": [round(low, 4), round(high, 4)],
+        "first_seed": first_seed, "mean_steps": float(np.mean(steps_taken)),
+        "infer_ms_p50": float(np.median(latencies)),
+        "backend": getattr(getattr(runtime, "policy", None), "backend", "torch"),
+    }
+    if record is not None:
+        scale = runtime.policy.normalizer.params_dict["action"]["scale"].detach().numpy()
+        result["agreement"] = {
+            name: agreement_with(make_runtime(name, model_dir, threads, backend), record, scale)
+            for name in ("engine-f32", "engine-int8")
+        }
+        if record_count:
+            write_observations(model_dir / "observations", record, record_count)
+    print(json.dumps(result))
+    return result
+
+
+def agreement_with(runtime, record, action_scale):
+    """The engine on the torch rollout's own inputs, with the same noise: max and mean of
+    |engine - torch| x action scale (normalized action units) over every recorded chunk."""
+    errors = []
+    for entry in record:
+        runtime.reset(entry["camera_k"], entry["camera_t"])
+        for image, state in zip(entry["images"], entry["state"]):
+            runtime.push(image, state)
+        action_pred, _ = runtime.infer(entry["noise"])
+        errors.append(np.abs(action_pred - entry["action_pred"]) * action_scale)
+    errors = np.stack(errors)
+    return {"inferences": len(record), "max": float(errors.max()), "mean": float(errors.mean()),
+            "p99_chunk_max": float(np.quantile(errors.reshape(len(record), -1).max(axis=1), 0.99))}
+
+
+def write_observations(folder: Path, record, count):
+    """`count` recorded inferences, spread over the rollouts, as run files with the torch
+    output beside the inputs (`torch.action_pred`)."""
+    from safetensors.numpy import save_file
+
+    folder.mkdir(exist_ok=True)
+    for number, row in enumerate(np.linspace(0, len(record) - 1, count).round().astype(int)):
+        entry = record[row]
+        save_file({
+            "images": np.ascontiguousarray(entry["images"]), "state": np.ascontiguousarray(entry["state"]),
+            "noise": entry["noise"], "camera_k": entry["camera_k"], "camera_t": entry["camera_t"],
+            "torch.action_pred": np.ascontiguousarray(entry["action_pred"], dtype=np.float32),
+        }, str(folder / f"{number:03d}.safetensors"),
+            metadata={"seed": str(entry["seed"]), "chunk": str(entry["chunk"])})
+
+
+def wilson_interval(successes: int, trials: int, z: float = 1.959963984540054):
+    """The Wilson score interval of a binomial proportion (95% by default)."""
+    if trials == 0:
+        return 0.0, 1.0
+    p = successes / trials
+    centre = (p + z * z / (2 * trials)) / (1 + z * z / trials)
+    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / (1 + z * z / trials)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def write_rollout_gif(path, frames, scale=3):
+    """Each executed step's frame with the anchors of every denoising step of the chunk that
+    chose it, blue (noisiest) to red (final), as `weights-tool run --viz` draws them."""
+    import imageio
+
+    pictures = []
+    for image, anchors in frames:
+        picture = np.kron(image, np.ones((scale, scale, 1), dtype=np.uint8))
+        steps = len(anchors)
+        for step, points in enumerate(anchors):
+            t = step / max(1, steps - 1)
+            colour = np.array([255 * t, 0, 255 * (1 - t)], dtype=np.uint8)
+            for u, v in points:
+                if not (np.isfinite(u) and np.isfinite(v)):
+                    continue
+                x, y = int(round((u + 0.5) * scale - 0.5)), int(round((v + 0.5) * scale - 0.5))
+                picture[max(0, y - 1) : y + 2, max(0, x - 1) : x + 2] = colour
+        pictures.append(picture)
+    imageio.mimsave(path, pictures, duration=0.05, loop=0)
+
+
+# --------------------------------------------------------------------------------------------
+# command line
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m scdp.metaworld", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = parser.add_subparsers(dest="command", required=True)
+    p = commands.add_parser("collect", help="record the scripted expert's demonstrations")
+    p.add_argument("--task", required=True)
+    p.add_argument("--model-dir", type=Path, required=True)
+    p.add_argument("--episodes", type=int, default=20)
+    p.add_argument("--first-seed", type=int, default=0)
+    p = commands.add_parser("calibration", help="run files of demonstration frames for int8 calibration")
+    p.add_argument("--model-dir", type=Path, required=True)
+    p.add_argument("--count", type=int, default=32)
+    p = commands.add_parser("train", help="train SCDP on the demonstrations (PyTorch)")
+    p.add_argument("--model-dir", type=Path, required=True)
+    p.add_argument("--steps", type=int, default=5000)
+    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--checkpoint-every", type=int, default=250)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--precision", choices=("bf16", "f32"), default="bf16",
+                   help="autocast precision of the forward pass (weights and optimizer stay f32)")
+    p = commands.add_parser("eval", help="closed-loop success of a runtime")
+    p.add_argument("--task", required=True)
+    p.add_argument("--model-dir", type=Path, required=True)
+    p.add_argument("--runtime", choices=("torch", "engine-f32", "engine-int8"), required=True)
+    p.add_argument("--episodes", type=int, default=100)
+    p.add_argument("--first-seed", type=int, default=DEFAULT_EVAL_SEED)
+    p.add_argument("--threads", type=int, default=2, help="PyTorch's threads (torch runtime)")
+    p.add_argument("--backend", default="auto", help="engine kernels (engine runtimes)")
+    p.add_argument("--gif", type=Path, help="write the first episode, anchors drawn, as an animated image")
+    p.add_argument("--agreement", action="store_true",
+                   help="torch runtime: also run engine f32 and int8 on every recorded inference")
+    p.add_argument("--record", type=int, default=0, metavar="N",
+                   help="with --agreement: keep N recorded inferences in MODEL_DIR/observations")
+    args = parser.parse_args(argv)
+    if args.command == "collect":
+        collect(args.task, args.model_dir, args.episodes, args.first_seed)
+    elif args.command == "calibration":
+        write_calibration(args.model_dir, args.count)
+    elif args.command == "train":
+        train(args.model_dir, args.steps, args.batch_size, args.checkpoint_every, args.threads, args.precision)
+    elif args.command == "eval":
+        evaluate(args.task, args.model_dir, args.runtime, args.episodes, args.first_seed, args.threads,
+                 args.backend, args.gif, args.agreement, args.record)
+
+
+if __name__ == "__main__":
+    main()
