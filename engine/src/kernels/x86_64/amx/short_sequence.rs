@@ -22,12 +22,13 @@ use core::arch::asm;
 use core::arch::x86_64::_mm512_load_si512;
 use core::mem::MaybeUninit;
 
-use super::{
-    BAND_BYTES, BandBuffer, BandInput, CHANNELS_PER_STEP, Epilogue, MAX_DIGIT_CHANNELS, Parameters,
-    ROW_BYTES, ROWS, SUM_COLUMNS, TILE_CONFIG, TileBuffer,
-};
+use super::band::{BAND_BYTES, BandBuffer, BandInput};
+use super::tiles::{Epilogue, TileBuffer, store_sums};
+use super::{CHANNELS_PER_STEP, Parameters, ROW_BYTES, ROWS, SUM_COLUMNS, TILE_CONFIG};
 use crate::kernels::scalar::tap_input;
-use crate::kernels::{Accumulate, ConvShape, INT8_CHANNEL_BLOCK, int8_quad_stride};
+use crate::kernels::{
+    Accumulate, ConvShape, INT8_CHANNEL_BLOCK, MAX_DIGIT_CHANNELS, int8_quad_stride,
+};
 
 /// Output positions an activation tile holds: its first rows are their high digits, the
 /// rest their low digits.
@@ -161,7 +162,7 @@ unsafe fn conv_pixels<I: BandInput>(
             None => 0,
         };
         // SAFETY: tiles configured; each buffer is 16 rows of 64 bytes.
-        unsafe { super::store_sums(&mut sums[set]) };
+        unsafe { store_sums(&mut sums[set]) };
         pending = Some((set, channel));
     }
     if let Some((set, channel)) = pending {
