@@ -1,5 +1,5 @@
 //! Action chunk -> anchors: the end-effector path the current sample implies, projected
-//! into the image (SPEC section 3, steps 1-3).
+//! into the image (docs/SPEC.md section 3, steps 1-3).
 
 use glam::{Mat3, Vec3};
 

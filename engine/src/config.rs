@@ -1,4 +1,4 @@
-//! The model configuration of SPEC section 7, as a plain `Copy` value usable in `const`
+//! The model configuration of docs/SPEC.md section 7, as a plain `Copy` value usable in `const`
 //! context, so firmware can plan its arena at compile time.
 
 use crate::error::ConfigError;
@@ -14,7 +14,7 @@ pub enum BackboneNorm {
     Batch,
 }
 
-/// Number of U-Net levels. The SPEC's ConditionalUnet1D has three (`down_dims` has three
+/// Number of U-Net levels. The ConditionalUnet1D of docs/SPEC.md has three (`down_dims` has three
 /// entries), so the horizon must be divisible by 4.
 pub const UNET_LEVELS: usize = 3;
 
@@ -31,7 +31,7 @@ pub const STEM_PADDING: usize = 3;
 /// always has its default of 8 groups, and `down_dims[0]` must divide by it.
 pub const FINAL_BLOCK_GROUPS: usize = 8;
 
-/// Every hyper-parameter that shapes a model. Field names follow the TOML of SPEC section 7.
+/// Every hyper-parameter that shapes a model. Field names follow the TOML of docs/SPEC.md section 7.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ModelConfig {
     pub image_height: u32,
@@ -39,7 +39,7 @@ pub struct ModelConfig {
     pub imagenet_norm: bool,
     pub backbone_norm: BackboneNorm,
     /// Channels of the first ResNet stage (64 in torchvision's resnet18; the later stages
-    /// have 2x, 4x, 8x). A project extension of SPEC section 7 so the tiny test model stays
+    /// have 2x, 4x, 8x). A project extension of docs/SPEC.md section 7 so the tiny test model stays
     /// small; real checkpoints always have 64.
     pub backbone_width: u32,
     /// `d`: channels of each projected feature map.
@@ -66,7 +66,7 @@ pub struct ModelConfig {
 }
 
 impl ModelConfig {
-    /// The paper's real-robot configuration (SPEC section 7).
+    /// The paper's real-robot configuration (docs/SPEC.md section 7).
     pub const PANDA: ModelConfig = ModelConfig {
         image_height: 240,
         image_width: 320,
@@ -92,7 +92,7 @@ impl ModelConfig {
         clip_sample: true,
     };
 
-    /// The simulated benchmark configuration (SPEC section 7).
+    /// The simulated benchmark configuration (docs/SPEC.md section 7).
     pub const METAWORLD: ModelConfig = ModelConfig {
         image_height: 128,
         image_width: 128,
@@ -316,7 +316,7 @@ impl ModelConfig {
         height * width > self.num_inference_steps as usize * self.anchor_count() * 4
     }
 
-    /// Groups of a trunk GroupNorm over `channels` (SPEC section 2: C/16).
+    /// Groups of a trunk GroupNorm over `channels` (docs/SPEC.md section 2: C/16).
     pub const fn backbone_groups(channels: usize) -> usize {
         channels / 16
     }

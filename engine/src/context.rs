@@ -1,4 +1,4 @@
-//! Anchors + feature pyramid -> global condition (SPEC section 3, steps 4-6): each frame's
+//! Anchors + feature pyramid -> global condition (docs/SPEC.md section 3, steps 4-6): each frame's
 //! maps bilinearly sampled at the anchors and averaged, then interleaved with the
 //! normalized states.
 

@@ -1,5 +1,5 @@
 //! Sample + condition -> predicted noise: Diffusion Policy's ConditionalUnet1D with FiLM
-//! (SPEC section 4), over `[T, C]` sequences.
+//! (docs/SPEC.md section 4), over `[T, C]` sequences.
 
 use crate::config::{FINAL_BLOCK_GROUPS, ModelConfig, UNET_LEVELS};
 use crate::kernels::ops::{self, Activation};

@@ -1,5 +1,5 @@
 //! Frame -> feature pyramid: the ResNet-18 trunk's taps C1..C5 and their 3x3 projections
-//! F1..F5 (SPEC section 2), once per frame.
+//! F1..F5 (docs/SPEC.md section 2), once per frame.
 
 use crate::config::{ModelConfig, PYRAMID_LEVELS, STEM_KERNEL, STEM_PADDING, STEM_STRIDE};
 use crate::frame::{self, PATCH_CHANNELS};

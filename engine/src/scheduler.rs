@@ -1,4 +1,4 @@
-//! DDIM update (SPEC section 5, eta = 0). The coefficients per step are precomputed by the
+//! DDIM update (docs/SPEC.md section 5, eta = 0). The coefficients per step are precomputed by the
 //! weights tool: `[sqrt(a_t), sqrt(1 - a_t), sqrt(a_prev), sqrt(1 - a_prev)]`.
 
 /// `x0 = clamp((A - sqrt(1 - a_t) eps) / sqrt(a_t))`, `A <- sqrt(a_prev) x0 + sqrt(1 - a_prev) eps`.

@@ -128,7 +128,7 @@ impl Calibration {
 
 /// The simulated arm: the end effector integrates the commanded position deltas on the 1 kHz
 /// state stream (action `a` moves it by `pos_scale * a[action_pos_index]` over one control
-/// period, the SPEC's anchor model), so the robot goes where the policy's anchors say.
+/// period, the anchor model of docs/SPEC.md), so the robot goes where the policy's anchors say.
 pub struct SimRobot {
     calibration: Calibration,
     camera: Camera,

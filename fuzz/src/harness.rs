@@ -349,7 +349,7 @@ pub fn centred_camera(config: &ModelConfig) -> Camera {
 // ---------------------------------------------------------------------------------------
 // Inference inputs.
 
-/// Whether an independent reading of SPEC section 1 accepts `k` as pinhole intrinsics.
+/// Whether an independent reading of docs/SPEC.md section 1 accepts `k` as pinhole intrinsics.
 fn intrinsics_valid(k: &[[f32; 3]; 3]) -> bool {
     let [[fx, skew, cx], [zero, fy, cy], bottom] = *k;
     [fx, fy, cx, cy].iter().all(|v| v.is_finite())

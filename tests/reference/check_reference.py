@@ -11,7 +11,7 @@ Checks and tolerances (max absolute difference unless stated):
      clip_sample, set_alpha_to_one, steps_offset=0, epsilon), set_timesteps(10), step() on the
      same eps sequence. Timesteps must equal 90..0 and betas must be bit-identical.
      - with diffusers' own alphas_cumprod injected: float32 bit-identical (tolerance 0).
-     - with the SPEC's float32 running product (differs from diffusers-on-CPU, whose
+     - with docs/SPEC.md's float32 running product (differs from diffusers-on-CPU, whose
        torch.cumprod accumulates in double, by up to 5 ulp): float32 <= 5e-6,
        float64 run vs diffusers stepping a float64 sample <= 5e-6 (diffusers keeps its
        coefficients in float32 even for a float64 sample).

@@ -1,10 +1,9 @@
-"""Independent PyTorch reference of SCDP inference (the contract is /work/shared/SPEC.md, kept
-in the repository's docs as the project's SPEC).
+"""Independent PyTorch reference of SCDP inference (the contract is docs/SPEC.md).
 
-Written from the SPEC, with Diffusion Policy's module layout (real-stanford/diffusion_policy:
+Written from docs/SPEC.md, with Diffusion Policy's module layout (real-stanford/diffusion_policy:
 ConditionalUnet1D, ConditionalResidualBlock1D, Conv1dBlock, SinusoidalPosEmb, Downsample1d,
-Upsample1d) reproduced so that `state_dict()` keys are exactly the checkpoint keys of SPEC
-section 6. The ResNet-18 trunk is torchvision's own module (or torchvision's BasicBlock at a
+Upsample1d) reproduced so that `state_dict()` keys are exactly the checkpoint keys of
+docs/SPEC.md section 6. The ResNet-18 trunk is torchvision's own module (or torchvision's BasicBlock at a
 scaled width for the `backbone_width` project extension).
 
 Everything that is computed per inference is written out explicitly here: preprocessing,
@@ -30,7 +29,7 @@ Z_MIN = 1e-3
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 # Diffusion Policy's final Conv1dBlock is built without n_groups, i.e. with the default 8
-# groups, whatever the residual blocks use (SPEC 4: "Conv1dBlock ... GroupNorm(8)").
+# groups, whatever the residual blocks use (docs/SPEC.md section 4: "Conv1dBlock ... GroupNorm(8)").
 FINAL_CONV_GROUPS = 8
 # Diffusion Policy's replace_bn_with_gn: GroupNorm(C // 16, C).
 GN_FEATURES_PER_GROUP = 16
@@ -105,7 +104,7 @@ def build_trunk(width: int, norm: str, force_scaled: bool = False) -> nn.Module:
 
 
 def trunk_taps(trunk: nn.Module, x: torch.Tensor) -> list[torch.Tensor]:
-    """C1..C5 of SPEC 2.3. C1 = maxpool(relu(norm1(conv1 x)))."""
+    """C1..C5 of docs/SPEC.md section 2.3. C1 = maxpool(relu(norm1(conv1 x)))."""
     h = trunk.maxpool(trunk.relu(trunk.bn1(trunk.conv1(x))))
     taps = [h]
     for layer in (trunk.layer1, trunk.layer2, trunk.layer3, trunk.layer4):
@@ -129,7 +128,7 @@ class ObsEncoder(nn.Module):
 
 
 def mish(x: torch.Tensor) -> torch.Tensor:
-    # SPEC 4: Mish(x) = x tanh(softplus(x)), softplus as PyTorch (threshold 20).
+    # docs/SPEC.md section 4: Mish(x) = x tanh(softplus(x)), softplus as PyTorch (threshold 20).
     return x * torch.tanh(F.softplus(x))
 
 
@@ -262,7 +261,7 @@ class ConditionalUnet1D(nn.Module):
 
 
 class Normalizer(nn.Module):
-    """Only the entries SPEC 6 reads: params_dict.{action,agent_pos}.{scale,offset}."""
+    """Only the entries docs/SPEC.md section 6 reads: params_dict.{action,agent_pos}.{scale,offset}."""
 
     def __init__(self, action_dim: int, state_dim: int):
         super().__init__()
@@ -307,7 +306,7 @@ def bilinear_sample(fmap: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> tor
 
 
 def ddim_schedule(cfg: dict) -> tuple[np.ndarray, list[int], int]:
-    """alphas_cumprod (float32, SPEC 5: betas in f64 stored f32, running product in f32),
+    """alphas_cumprod (float32, docs/SPEC.md section 5: betas in f64 stored f32, running product in f32),
     the "leading" timesteps and the step ratio."""
     T = cfg["num_train_timesteps"]
     steps = cfg["num_inference_steps"]
@@ -401,7 +400,7 @@ class SCDPPolicy(nn.Module):
         return self.obs_encoder.proj[0].weight.dtype
 
     def anchors(self, A: torch.Tensor, state: torch.Tensor, R: torch.Tensor, tvec: torch.Tensor):
-        """SPEC 3.1-3.3. Returns (points_cam [s+1,3], valid [s+1] bool, uv [s+1,2] NaN where invalid)."""
+        """docs/SPEC.md section 3.1-3.3. Returns (points_cam [s+1,3], valid [s+1] bool, uv [s+1,2] NaN where invalid)."""
         cfg = self.cfg
         To, s = cfg["n_obs_steps"], cfg["reconstruction_horizon"]
         nd = self.normalizer.params_dict["action"]
@@ -427,7 +426,7 @@ class SCDPPolicy(nn.Module):
         return torch.where(valid[:, None], uv, nan)
 
     def context(self, feats: list[torch.Tensor], uv: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-        """SPEC 3.4-3.5: [To, 5d] pooled contexts."""
+        """docs/SPEC.md section 3.4-3.5: [To, 5d] pooled contexts."""
         cfg = self.cfg
         H, W = cfg["image_height"], cfg["image_width"]
         npts = uv.shape[0]

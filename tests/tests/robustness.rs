@@ -672,7 +672,7 @@ fn wrong_image_size_or_frame_count_is_image_size() {
     });
 }
 
-/// The run files of SPEC section 8 hold `[To, H, W, 3]` images: a file with another frame
+/// The run files of docs/SPEC.md section 8 hold `[To, H, W, 3]` images: a file with another frame
 /// count is refused when it is read (weights-tool, std side), before the engine sees it.
 #[test]
 fn run_file_with_wrong_frame_count_is_refused() {
@@ -1146,7 +1146,7 @@ fn infer_before_camera_is_no_camera() {
 }
 
 /// Image size is the one config field that changes no tensor, so a file can declare any
-/// legal size: the smallest and oddest ones must still run (SPEC's convolution arithmetic
+/// legal size: the smallest and oddest ones must still run (docs/SPEC.md's convolution arithmetic
 /// keeps every map at least 1 x 1).
 #[test]
 fn legal_but_degenerate_image_sizes_run() {

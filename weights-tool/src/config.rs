@@ -1,4 +1,4 @@
-//! The model configuration TOML of SPEC section 7, read into and written from the engine's
+//! The model configuration TOML of docs/SPEC.md section 7, read into and written from the engine's
 //! [`ModelConfig`].
 //!
 //! Parsing is in two passes over the same text: first as a plain table, so that every unknown
@@ -13,7 +13,7 @@ use scdp_engine::error::ConfigError;
 use scdp_engine::{BackboneNorm, ModelConfig};
 use serde::{Deserialize, Serialize};
 
-/// `backbone_width` is a project extension of SPEC section 7; real checkpoints use 64.
+/// `backbone_width` is a project extension of docs/SPEC.md section 7; real checkpoints use 64.
 pub const DEFAULT_BACKBONE_WIDTH: u32 = 64;
 
 /// Every key the TOML may hold, in the order [`config_to_toml`] writes them.
@@ -79,14 +79,14 @@ fn describe_key_sets(unknown: &[String], missing: &[String]) -> String {
     text
 }
 
-/// The only noise schedule the engine implements (SPEC section 5).
+/// The only noise schedule the engine implements (docs/SPEC.md section 5).
 #[derive(Clone, Copy, Debug, Serialize, Deserialize)]
 enum BetaSchedule {
     #[serde(rename = "squaredcos_cap_v2")]
     SquaredcosCapV2,
 }
 
-/// The only denoiser output the engine implements (SPEC section 5).
+/// The only denoiser output the engine implements (docs/SPEC.md section 5).
 #[derive(Clone, Copy, Debug, Serialize, Deserialize)]
 enum PredictionType {
     #[serde(rename = "epsilon")]
@@ -100,7 +100,7 @@ enum NormName {
     Batch,
 }
 
-/// The TOML's shape. Field order is the order of SPEC section 7 and of the written file.
+/// The TOML's shape. Field order is the order of docs/SPEC.md section 7 and of the written file.
 #[derive(Debug, Serialize, Deserialize)]
 struct ConfigToml {
     image_height: u32,
@@ -134,7 +134,7 @@ fn default_backbone_width() -> u32 {
     DEFAULT_BACKBONE_WIDTH
 }
 
-/// Parses the TOML text of SPEC section 7 and validates the result with
+/// Parses the TOML text of docs/SPEC.md section 7 and validates the result with
 /// [`ModelConfig::validate`].
 pub fn parse_config(text: &str) -> Result<ModelConfig, ConfigParseError> {
     let table: toml::Table =
@@ -183,7 +183,7 @@ pub fn load_config(path: &Path) -> anyhow::Result<ModelConfig> {
     parse_config(&text).with_context(|| format!("{}: bad model config", path.display()))
 }
 
-/// Writes `config` as the TOML of SPEC section 7 (with `backbone_width` always present), such
+/// Writes `config` as the TOML of docs/SPEC.md section 7 (with `backbone_width` always present), such
 /// that [`parse_config`] gives back an equal config.
 pub fn config_to_toml(config: &ModelConfig) -> String {
     // Serializing a plain struct of numbers, bools and arrays cannot fail.

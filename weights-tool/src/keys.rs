@@ -1,4 +1,4 @@
-//! The state-dict keys of SPEC section 6 with their PyTorch shapes, and the check that a
+//! The state-dict keys of docs/SPEC.md section 6 with their PyTorch shapes, and the check that a
 //! loaded state dict has exactly those.
 
 use std::collections::BTreeSet;
@@ -15,10 +15,10 @@ pub type ExpectedKey = (String, Vec<usize>);
 const IGNORED_SUFFIX: &str = ".num_batches_tracked";
 
 /// Other normalizer entries (`input_stats`, other observation keys) exist in Diffusion Policy
-/// checkpoints but do not enter the model (SPEC section 6).
+/// checkpoints but do not enter the model (docs/SPEC.md section 6).
 const IGNORED_PREFIX: &str = "normalizer.";
 
-/// Every key of SPEC section 6 for `config`, in PyTorch's `state_dict()` order within each
+/// Every key of docs/SPEC.md section 6 for `config`, in PyTorch's `state_dict()` order within each
 /// module, with its shape. `num_batches_tracked` is not listed.
 pub fn expected_keys(config: &ModelConfig) -> Vec<ExpectedKey> {
     let mut keys = KeyList::default();

@@ -33,7 +33,7 @@ enum Command {
     Convert(ConvertArgs),
     /// Show a weights file's config, storage, arena plan and tensor table.
     Inspect(InspectArgs),
-    /// Run the engine on a run file (SPEC section 8): actions, anchors, optional picture and
+    /// Run the engine on a run file (docs/SPEC.md section 8): actions, anchors, optional picture and
     /// latency benchmark.
     Run(RunArgs),
 }
@@ -70,7 +70,7 @@ struct RunArgs {
 
 #[derive(clap::Args)]
 struct SynthArgs {
-    /// Model config TOML (SPEC section 7).
+    /// Model config TOML (docs/SPEC.md section 7).
     #[arg(long, value_name = "MODEL.toml")]
     config: PathBuf,
     /// Generator seed.
@@ -86,7 +86,7 @@ struct ConvertArgs {
     /// Training checkpoint (.ckpt), torch.save state dict (.pt) or .safetensors file.
     #[arg(value_name = "CHECKPOINT")]
     checkpoint: PathBuf,
-    /// Model config TOML (SPEC section 7) the checkpoint was trained with.
+    /// Model config TOML (docs/SPEC.md section 7) the checkpoint was trained with.
     #[arg(long, value_name = "MODEL.toml")]
     config: PathBuf,
     /// Storage precision of the weights.

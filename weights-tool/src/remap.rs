@@ -1,5 +1,5 @@
 //! `--key-prefix OLD=NEW`: renaming key prefixes of checkpoints whose modules are named
-//! differently from SPEC section 6 (e.g. `obs_encoder.obs_nets.image.` for `obs_encoder.`).
+//! differently from docs/SPEC.md section 6 (e.g. `obs_encoder.obs_nets.image.` for `obs_encoder.`).
 
 use std::collections::BTreeMap;
 use std::str::FromStr;

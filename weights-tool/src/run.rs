@@ -1,4 +1,4 @@
-//! `weights-tool run`: the engine on the run files of SPEC section 8, with an optional
+//! `weights-tool run`: the engine on the run files of docs/SPEC.md section 8, with an optional
 //! picture of where the policy looked and an optional latency benchmark.
 
 use std::collections::BTreeMap;
@@ -11,7 +11,7 @@ use scdp_engine::{ArenaPlan, Camera, Model, ModelConfig, Noise, Policy};
 
 use crate::writer::AlignedBytes;
 
-/// The inputs of one inference (SPEC section 8).
+/// The inputs of one inference (docs/SPEC.md section 8).
 #[derive(Clone, Debug)]
 pub struct RunInputs {
     /// `[To, H, W, 3]` RGB, oldest first.

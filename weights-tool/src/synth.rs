@@ -101,7 +101,7 @@ pub fn synth_tensor(config: &ModelConfig, seed: u64, key: &str, shape: &[usize])
     Tensor::new(shape.to_vec(), data)
 }
 
-/// The full state dict of SPEC section 6 for `(config, seed)`.
+/// The full state dict of docs/SPEC.md section 6 for `(config, seed)`.
 pub fn synth_state_dict(config: &ModelConfig, seed: u64) -> StateDict {
     let mut state_dict = StateDict::new(Source::Synthetic { seed });
     for (key, shape) in expected_keys(config) {

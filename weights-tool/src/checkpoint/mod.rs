@@ -1,4 +1,4 @@
-//! Loading a state dict from any container of SPEC section 6: a Diffusion Policy training
+//! Loading a state dict from any container of docs/SPEC.md section 6: a Diffusion Policy training
 //! checkpoint or a plain state dict written by `torch.save`, or a `.safetensors` file. The
 //! container is recognised by its first bytes, not by the file name.
 
