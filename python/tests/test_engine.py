@@ -11,7 +11,6 @@ from __future__ import annotations
 import gc
 import os
 import re
-import shutil
 import subprocess
 import sys
 import threading
@@ -43,25 +42,6 @@ def fixture_id(path: Path) -> str:
 def fixture_metadata(path: Path) -> dict[str, str]:
     with safe_open(str(path), "np") as f:
         return f.metadata()
-
-
-@pytest.fixture(scope="session")
-def weights_tool() -> Path:
-    override = os.environ.get("SCDP_WEIGHTS_TOOL")
-    if override:
-        return Path(override)
-    target = Path(os.environ.get("CARGO_TARGET_DIR", ROOT / "target"))
-    binary = target / "release" / "weights-tool"
-    if shutil.which("cargo"):
-        # A no-op when the binary is current; a stale one could write another format version.
-        subprocess.run(
-            ["cargo", "build", "--release", "--quiet", "-p", "weights-tool"],
-            cwd=ROOT,
-            check=True,
-        )
-    if not binary.exists():
-        pytest.fail(f"{binary} does not exist and cargo is not on PATH to build it")
-    return binary
 
 
 class Weights:
