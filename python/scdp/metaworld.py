@@ -411,7 +411,7 @@ def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backe
             for name in ("engine-f32", "engine-int8")
         }
         if record_count:
-            write_observations(model_dir / "observations", record, record_count)
+            write_observations(model_dir / "observations", record, record_count, scale)
     print(json.dumps(result))
     return result
 
@@ -431,9 +431,10 @@ def agreement_with(runtime, record, action_scale):
             "p99_chunk_max": float(np.quantile(errors.reshape(len(record), -1).max(axis=1), 0.99))}
 
 
-def write_observations(folder: Path, record, count):
+def write_observations(folder: Path, record, count, action_scale):
     """`count` recorded inferences, spread over the rollouts, as run files with the torch
-    output beside the inputs (`torch.action_pred`)."""
+    output beside the inputs (`torch.action_pred`, and the `action_scale` that normalizes
+    its errors)."""
     from safetensors.numpy import save_file
 
     folder.mkdir(exist_ok=True)
@@ -443,6 +444,7 @@ def write_observations(folder: Path, record, count):
             "images": np.ascontiguousarray(entry["images"]), "state": np.ascontiguousarray(entry["state"]),
             "noise": entry["noise"], "camera_k": entry["camera_k"], "camera_t": entry["camera_t"],
             "torch.action_pred": np.ascontiguousarray(entry["action_pred"], dtype=np.float32),
+            "action_scale": np.ascontiguousarray(action_scale, dtype=np.float32),
         }, str(folder / f"{number:03d}.safetensors"),
             metadata={"seed": str(entry["seed"]), "chunk": str(entry["chunk"])})
 
