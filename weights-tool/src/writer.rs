@@ -213,7 +213,7 @@ pub fn aligned_copy(bytes: &[u8]) -> AlignedBytes {
 /// on Linux in transparent huge pages where the kernel has them. The U-Net's weights are
 /// read in full at every denoising step: over 4 KiB pages their 15 MB are 3,600 TLB misses
 /// a step, and the hardware prefetchers stop at every page boundary; 2 MiB pages made the
-/// denoising loop 12-15% faster (in-process A/B, session 6, benches/README.md).
+/// denoising loop 12-15% faster (in-process A/B).
 pub struct AlignedBytes {
     map: memmap2::MmapMut,
     len: usize,

@@ -52,8 +52,7 @@ pub(crate) use tiles::{conv, conv_pixel, tiles_apply};
 /// Pixels and channel vectors of a tile, per backend, both digit planes' sums held across
 /// the kernel: AVX2 has 16 YMM registers (8 sums, 4 weight vectors, the broadcast, the ones
 /// and a product); AVX-512 has 32 ZMM registers (16 sums, 4 weight vectors, the
-/// broadcast). Session 7 took (2, 2) and (3, 4), half the pixels of session 5's one-plane
-/// tiles; since both planes share one quad loop, the in-process A/B of whole encodes put
+/// broadcast). With both planes in one quad loop, the in-process A/B of whole encodes put
 /// (1, 4) at 0.91-0.97x of (2, 2) on AVX2 ((1, 8) spills: 0.95-1.17x) and (2, 4) at
 /// 0.98-0.986x of (3, 4) on AVX-512 ((6, 2) 1.09-1.13x, (1, 4) 1.23-1.35x).
 const AVX2_TILE: (usize, usize) = (1, 4);

@@ -164,7 +164,7 @@ fn prefetch_lines<T>(start: *const T, bytes: usize) {
 /// [`prefetch_lines`] into L2 only (`prefetcht1`): for weight streams asked for far ahead of
 /// the loads that read them. Asked into L1 16 KB ahead, the lines wait in the core's few
 /// L1 miss buffers and stall the loads the loop needs now; into L2 the f32 U-Net's stream
-/// from DRAM ran 1.5-1.7x faster (session 16, `benches/README.md`).
+/// from DRAM ran 1.5-1.7x faster (`benches/README.md`, Zen 4).
 #[inline(always)]
 fn prefetch_lines_into_l2<T>(start: *const T, bytes: usize) {
     prefetch_lines_with::<_MM_HINT_T1, T>(start, bytes);

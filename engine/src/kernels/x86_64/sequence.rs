@@ -169,11 +169,11 @@ unsafe fn convolve<L: Lanes>(
 
 /// Bytes ahead of the weight row being read that [`convolve_streaming`] asks L2 for. The
 /// weights are one stream in memory order, yet the hardware prefetchers alone left the f32
-/// loop at about 7 GB/s (session 10: 4-16 KB ahead into L1 gave 0.71-0.77x of the loop
-/// without it, from the 260 MB L3 of a Xeon VM). Where the 59 MB a step come from DRAM (a
+/// loop at about 7 GB/s (4-16 KB ahead into L1 gave 0.71-0.77x of the loop without it,
+/// from the 260 MB L3 of a Xeon VM). Where the 59 MB a step come from DRAM (a
 /// 32 MB L3), asking into L1 8-32 KB ahead made no difference and asking into L2 16 KB
 /// ahead ran the loop 1.5-1.7x faster; 32-64 KB measured the same as 16
-/// (`benches/README.md`, session 16).
+/// (`benches/README.md`, Zen 4).
 const STREAMING_PREFETCH: usize = 16384;
 
 /// Bytes ahead of the columns being read that [`matvec`] asks the caches for (the f32 FiLM

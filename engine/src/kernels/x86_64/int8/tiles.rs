@@ -221,7 +221,7 @@ impl TileInput for DigitRows<'_> {
 
 /// Quad rows of weights [`CodeRows`]' tiles ask L2 for ahead of the one they read (64: 16
 /// KB for the AVX-512 tile; with 16 rows into L1 the int8 denoising loop took
-/// 1.17-1.19x as long on Zen 4, session 16).
+/// 1.17-1.19x as long on Zen 4, whose L3 is small enough for the stream to matter).
 const PREFETCH_QUADS: usize = 64;
 
 impl TileInput for CodeRows<'_> {
