@@ -4,9 +4,13 @@
 
 use core::ops::Range;
 
-use crate::config::{ModelConfig, STEM_KERNEL, STEM_PADDING, STEM_STRIDE};
+use crate::config::ModelConfig;
 use crate::error::Error;
 use crate::shape::QUAD;
+
+// The stem's geometry belongs to the configuration it constrains; re-exported here, where
+// the patches are cut by it, under the path dependants know.
+pub use crate::config::{STEM_KERNEL, STEM_PADDING, STEM_STRIDE};
 
 /// Values of one stem patch: each of the 49 taps a quad (the pixel's three bytes and a
 /// zero). An int8 kernel over three channels stores one quad a tap ([`int8_quad_index`]),
