@@ -1,0 +1,92 @@
+"""The trained Meta-World policies that ship in tests/fixtures/trained/: the engine against
+PyTorch on the torch rollouts' own recorded inputs, and the int8 policy in closed loop.
+
+Each folder holds the training checkpoint (`checkpoint.ckpt`, the EMA weights in float16),
+the int8 weights file made from it, the figures `eval` measured (`eval.json`) and recorded
+observations (`observations/*.safetensors`: run files with the torch output). The f32
+weights file is made here from the checkpoint by `weights-tool convert`, as a user would.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scdp
+from safetensors.numpy import load_file
+
+ROOT = Path(__file__).resolve().parents[2]
+TRAINED = sorted((ROOT / "tests" / "fixtures" / "trained").glob("metaworld-*"))
+# Closed-loop smoke test: episodes of the int8 policy, on seeds far from the evaluation's.
+SMOKE_EPISODES = 10
+SMOKE_FIRST_SEED = 5000
+
+
+def task_of(folder: Path) -> str:
+    return folder.name.removeprefix("metaworld-")
+
+
+def evaluations(folder: Path) -> dict:
+    return {entry["runtime"]: entry for entry in json.loads((folder / "eval.json").read_text())}
+
+
+@pytest.fixture(scope="session")
+def f32_weights(weights_tool: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[Path, Path]:
+    out = {}
+    for folder in TRAINED:
+        target = tmp_path_factory.mktemp(folder.name) / "f32.scdp"
+        subprocess.run(
+            [str(weights_tool), "convert", str(folder / "checkpoint.ckpt"), "--config",
+             str(folder / "model.toml"), "-o", str(target)],
+            check=True, capture_output=True,
+        )
+        out[folder] = target
+    return out
+
+
+def test_a_trained_policy_ships():
+    assert TRAINED, "no tests/fixtures/trained/metaworld-* folder"
+    for folder in TRAINED:
+        assert len(list((folder / "observations").glob("*.safetensors"))) >= 4
+
+
+@pytest.mark.parametrize("quant", ["f32", "int8"])
+@pytest.mark.parametrize("folder", TRAINED, ids=lambda f: f.name)
+def test_engine_reproduces_torch_on_recorded_observations(folder, quant, f32_weights):
+    """Bounds: f32 within the issue's 2e-4 (measured on every inference of the 100 torch
+    rollouts, see eval.json); int8 within twice the largest error measured there, which was
+    over ~1000 inferences, so these few recorded ones stay inside it with margin."""
+    torch_figures = evaluations(folder)["torch"]["agreement"]
+    bound = 2e-4 if quant == "f32" else 2 * torch_figures["engine-int8"]["max"]
+    path = f32_weights[folder] if quant == "f32" else folder / "int8.scdp"
+    model = scdp.Model(str(path))
+    for backend in scdp.backends():
+        policy = scdp.Policy(model, backend=backend)
+        for file in sorted((folder / "observations").glob("*.safetensors")):
+            run = load_file(str(file))
+            policy.reset()
+            policy.set_camera(run["camera_k"], run["camera_t"])
+            for image, state in zip(run["images"], run["state"]):
+                policy.push_observation(image, state)
+            action_pred = policy.infer(noise=run["noise"], full=True)["action_pred"]
+            # In normalized action units (x the normalizer's scale), as the golden tests.
+            error = float((np.abs(action_pred - run["torch.action_pred"]) * run["action_scale"]).max())
+            assert error <= bound, (file.name, backend, error, bound)
+
+
+@pytest.mark.parametrize("folder", TRAINED, ids=lambda f: f.name)
+def test_int8_policy_in_closed_loop(folder):
+    """At least the measured int8 success rate less a margin: the lower end of the 95% Wilson
+    interval that SMOKE_EPISODES episodes at the measured rate would have, so a correct
+    policy fails this rarely, and one that has lost its skill (the measured rate near 0 for
+    a broken camera model or quantization) fails it."""
+    from scdp import metaworld
+
+    measured = evaluations(folder)["engine-int8"]["success_rate"]
+    floor, _ = metaworld.wilson_interval(round(measured * SMOKE_EPISODES), SMOKE_EPISODES)
+    result = metaworld.evaluate(task_of(folder), folder, "engine-int8", SMOKE_EPISODES, SMOKE_FIRST_SEED,
+                                threads=1)
+    assert result["success_rate"] >= floor, (result, floor)
