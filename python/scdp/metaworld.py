@@ -239,6 +239,38 @@ def train(model_dir: Path, total_steps: int, batch_size: int, checkpoint_every: 
     torch.save(final, model_dir / CHECKPOINT)
 
 
+def training_cost(model_dir: Path, batches: int, batch_size: int, threads: int) -> None:
+    """Seconds per training batch (forward, backward, AdamW step) in each autocast precision,
+    measured in one process on the demonstrations; the first batch of each is a warm-up."""
+    import torch
+
+    from .torch_policy import SCDPPolicy
+
+    torch.set_num_threads(threads)
+    cfg = load_config(model_dir)
+    demos = dict(np.load(model_dir / DEMOS))
+    sequences = Sequences(demos, cfg)
+    camera_k = torch.as_tensor(demos["camera_k"]).expand(batch_size, 3, 3)
+    camera_t = torch.as_tensor(demos["camera_t"]).expand(batch_size, 4, 4)
+    rng = np.random.default_rng(0)
+    result = {"batch_size": batch_size, "threads": threads}
+    for precision in ("f32", "bf16"):
+        model = SCDPPolicy(cfg)
+        optimizer = torch.optim.AdamW(model.parameters(), lr=1e-4)
+        seconds = []
+        for _ in range(batches + 1):
+            batch = [torch.as_tensor(x) for x in sequences.batch(rng, batch_size)]
+            started = time.perf_counter()
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16"):
+                loss = model.loss(*batch, camera_k, camera_t)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            seconds.append(time.perf_counter() - started)
+        result[f"{precision}_seconds_p50"] = float(np.median(seconds[1:]))
+    print(json.dumps(result))
+
+
 # --------------------------------------------------------------------------------------------
 # runtimes: one interface over PyTorch and the engine
 
@@ -504,6 +536,11 @@ def main(argv=None) -> None:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--precision", choices=("bf16", "f32"), default="bf16",
                    help="autocast precision of the forward pass (weights and optimizer stay f32)")
+    p = commands.add_parser("train-cost", help="seconds per training batch, f32 and bf16 autocast")
+    p.add_argument("--model-dir", type=Path, required=True)
+    p.add_argument("--batches", type=int, default=5)
+    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--threads", type=int, default=2)
     p = commands.add_parser("eval", help="closed-loop success of a runtime")
     p.add_argument("--task", required=True)
     p.add_argument("--model-dir", type=Path, required=True)
@@ -524,6 +561,8 @@ def main(argv=None) -> None:
         write_calibration(args.model_dir, args.count)
     elif args.command == "train":
         train(args.model_dir, args.steps, args.batch_size, args.checkpoint_every, args.threads, args.precision)
+    elif args.command == "train-cost":
+        training_cost(args.model_dir, args.batches, args.batch_size, args.threads)
     elif args.command == "eval":
         evaluate(args.task, args.model_dir, args.runtime, args.episodes, args.first_seed, args.threads,
                  args.backend, args.gif, args.agreement, args.record)
