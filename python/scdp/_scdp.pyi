@@ -12,7 +12,7 @@ _BackendName: TypeAlias = Literal["auto", "scalar", "avx2", "avx512", "amx"]
 
 @type_check_only
 class ModelConfig(TypedDict):
-    """The model configuration a weights file records (SPEC section 7's field names)."""
+    """The model configuration a weights file records (docs/SPEC.md section 7's field names)."""
 
     image_height: int
     image_width: int
@@ -82,7 +82,7 @@ class Model:
         ...), copied into aligned memory the model owns."""
     @property
     def config(self) -> ModelConfig:
-        """The model configuration the file records (SPEC section 7's field names)."""
+        """The model configuration the file records (docs/SPEC.md section 7's field names)."""
     @property
     def quant(self) -> Literal["f32", "int8"]:
         """Storage precision of the weight matrices and kernels."""

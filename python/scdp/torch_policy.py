@@ -5,9 +5,9 @@ reads (docs/SPEC.md section 6): `obs_encoder.backbone.*` (torchvision ResNet-18 
 BatchNorm replaced by GroupNorm(C/16, C)), `obs_encoder.proj.{0..4}`, `model.*`
 (ConditionalUnet1D with FiLM) and `normalizer.params_dict.{action,agent_pos}.{scale,offset}`.
 
-The math is the SPEC's: the anchors are reconstructed from the current (noisy) sample at
+The math is docs/SPEC.md's: the anchors are reconstructed from the current (noisy) sample at
 every denoising step, and bilinear sampling is `grid_sample(align_corners=False,
-padding_mode="zeros")`, which the SPEC defines the engine's sampling by. This file imports
+padding_mode="zeros")`, which docs/SPEC.md defines the engine's sampling by. This file imports
 torch; nothing else in the package does at import time.
 """
 
@@ -251,7 +251,7 @@ class SCDPPolicy(nn.Module):
         return [f.unflatten(0, (batch, frames)) for f in self.obs_encoder(x)]
 
     def anchors(self, sample, state, camera_k, camera_t):
-        """The SPEC's anchors of the normalized sample [B, horizon, A]: pixel coordinates
+        """docs/SPEC.md's anchors of the normalized sample [B, horizon, A]: pixel coordinates
         [B, s+1, 2] (zero where invalid) and validity [B, s+1]."""
         cfg = self.cfg
         frames, s = cfg["n_obs_steps"], cfg["reconstruction_horizon"]

@@ -90,7 +90,7 @@ impl Loaded {
     }
 }
 
-/// Every field of `config` (SPEC section 7's names), a new dict each call.
+/// Every field of `config` (docs/SPEC.md section 7's names), a new dict each call.
 fn config_dict<'py>(py: Python<'py>, config: &ModelConfig) -> PyResult<Bound<'py, PyDict>> {
     // Exhaustive on purpose: a field added to ModelConfig fails to compile here until the
     // dict shows it.
@@ -282,7 +282,7 @@ impl PyModel {
         })
     }
 
-    /// The model configuration the file records (SPEC section 7's field names).
+    /// The model configuration the file records (docs/SPEC.md section 7's field names).
     #[getter]
     fn config<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         config_dict(py, self.loaded.config())
@@ -395,7 +395,7 @@ impl PyPolicy {
     /// `[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`, `T` the 4x4 rigid camera <- robot-base
     /// transform (`X_cam = R X_base + t`). float32 or float64. The engine's checks raise
     /// `EngineError` (non-positive focal length, a T that is not a finite rigid transform).
-    // K and T as SPEC section 3 names them, which are also the keyword names.
+    // K and T as docs/SPEC.md section 3 names them, which are also the keyword names.
     #[pyo3(signature = (K, T))]
     #[allow(non_snake_case)]
     fn set_camera(&mut self, K: &Bound<'_, PyAny>, T: &Bound<'_, PyAny>) -> PyResult<()> {

@@ -449,7 +449,7 @@ def test_backends(tiny_model):
 
 def test_config_matches_the_toml(models):
     for path in FIXTURES:
-        # The one optional key of the config TOML (SPEC section 7 has no such field).
+        # The one optional key of the config TOML (docs/SPEC.md section 7 has no such field).
         toml = {"backbone_width": 64, **tomllib.loads(fixture_metadata(path)["config"])}
         config = models[path].config
         assert config == scdp.Policy(models[path]).config
