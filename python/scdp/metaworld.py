@@ -325,7 +325,7 @@ class EngineRuntime:
 
         if not model_path.exists():
             raise SystemExit(
-                f"{model_path} does not exist; make it with weights-tool convert (see the README)"
+                f"{model_path} does not exist; make it with weights-tool convert (docs/METAWORLD.md, Reproduce)"
             )
         self.name = name
         self.model = Model(str(model_path))
