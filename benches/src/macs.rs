@@ -373,7 +373,7 @@ pub fn totals(config: &ModelConfig) -> Totals {
 mod tests {
     use super::*;
     use scdp_engine::error::Error;
-    use scdp_engine::weights::{ModelWeights, TensorSource, Weight};
+    use scdp_engine::weights::{ModelWeights, NarrowCodes, TensorSource, Weight};
     use std::fmt;
 
     /// PyTorch's own count, `torch.utils.flop_counter.FlopCounterMode` over the reference
@@ -465,6 +465,7 @@ mod tests {
             _scale_name: fmt::Arguments<'_>,
             dims: &[usize],
             _channels: usize,
+            _narrow: NarrowCodes,
         ) -> Result<Weight<'z>, Error> {
             Ok(Weight::F32(self.record(name, dims)))
         }

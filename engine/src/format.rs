@@ -32,7 +32,12 @@ pub const CHECKSUM_RANGE: core::ops::Range<usize> = 24..32;
 #[repr(u32)]
 pub enum DType {
     F32 = 0,
+    /// int8 weights whose layer quantizes its input to 15-bit codes (the precise scheme).
     I8 = 1,
+    /// int8 weights whose layer quantizes its input to 8-bit unsigned codes, one byte a
+    /// value: half the integer products of [`DType::I8`]'s trunk layers. Only the residual
+    /// blocks' convolutions, whose inputs are ReLU outputs, take it (docs/QUANTIZATION.md).
+    I8Narrow = 2,
 }
 
 impl DType {
@@ -40,6 +45,7 @@ impl DType {
         match code {
             0 => Some(DType::F32),
             1 => Some(DType::I8),
+            2 => Some(DType::I8Narrow),
             _ => None,
         }
     }
@@ -47,7 +53,7 @@ impl DType {
     pub const fn size(self) -> usize {
         match self {
             DType::F32 => 4,
-            DType::I8 => 1,
+            DType::I8 | DType::I8Narrow => 1,
         }
     }
 }
@@ -371,7 +377,7 @@ impl<'w> WeightsFile<'w> {
         // An int8 convolution kernel is stored in input-channel quads, `in` padded to a
         // multiple of 4 (crate::shape::int8_quad_index).
         let stored = match dtype {
-            DType::I8 => int8_stored_elements(&dims[..rank]).ok_or(bad)?,
+            DType::I8 | DType::I8Narrow => int8_stored_elements(&dims[..rank]).ok_or(bad)?,
             DType::F32 => elements,
         };
         if stored.checked_mul(dtype.size()) != Some(byte_len) {

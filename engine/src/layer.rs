@@ -3,7 +3,7 @@
 //! U-Net's to whole codes) and go to the integer kernels. The bridge between the weights
 //! file's types and the kernels, which know neither the file nor the model.
 
-use crate::kernels::{Accumulate, ConvShape, DigitRows, Kernels, QuantizeScratch};
+use crate::kernels::{Accumulate, ConvShape, DigitRows, Kernels, QuantizeScratch, TrunkCodes};
 use crate::weights::Weight;
 
 /// How a layer with int8 weights quantizes its input (one scale for the whole input,
@@ -33,11 +33,11 @@ pub fn convolve(
     let output = &mut output[..shape.output_len()];
     match (*weight, activations) {
         (Weight::F32(values), _) => kernels.conv(shape, input, values, bias, output, accumulate),
-        (Weight::Int8 { values, scales }, Activations::Digits(scratch)) => {
+        (Weight::Int8 { values, scales, .. }, Activations::Digits(scratch)) => {
             let digits = scratch.quantize(kernels, input);
             kernels.conv_int8(shape, &digits, values, scales, bias, output, accumulate)
         }
-        (Weight::Int8 { values, scales }, Activations::Codes(scratch)) => {
+        (Weight::Int8 { values, scales, .. }, Activations::Codes(scratch)) => {
             let codes = scratch.quantize_codes(kernels, input, shape.in_channels);
             kernels.conv_int8_codes(shape, &codes, values, scales, bias, output, accumulate)
         }
@@ -90,6 +90,7 @@ pub fn convolve_pixels(
         Weight::Int8 {
             values: weights,
             scales: weight_scales,
+            ..
         } => {
             let values: &[i8] = &bytemuck::cast_slice(values)[..2 * shape.input_len()];
             let digits = DigitRows::from_planes(values, scale, nonnegative);
@@ -113,9 +114,29 @@ pub fn linear(
         Weight::F32(values) => kernels.matvec(values, input, base, output),
         // No codes to make of no input; the sums are empty.
         Weight::Int8 { .. } if input.is_empty() => output.copy_from_slice(base),
-        Weight::Int8 { values, scales } => {
+        Weight::Int8 { values, scales, .. } => {
             let codes = quantized.quantize_codes(kernels, input, input.len());
             kernels.matvec_int8_codes(values, scales, &codes, base, output)
+        }
+    }
+}
+
+/// An int8 trunk convolution on its input's codes, in whichever form they were quantized
+/// to (`parameters`: the packed weights, their scales, the bias).
+pub fn convolve_codes(
+    kernels: &dyn Kernels,
+    shape: &ConvShape,
+    codes: &TrunkCodes<'_>,
+    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    match codes {
+        TrunkCodes::Digits(digits) => {
+            kernels.conv_int8(shape, digits, weight, weight_scales, bias, output, accumulate)
+        }
+        TrunkCodes::Bytes(bytes) => {
+            kernels.conv_int8_bytes(shape, bytes, weight, weight_scales, bias, output, accumulate)
         }
     }
 }

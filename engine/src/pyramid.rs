@@ -4,10 +4,12 @@
 use crate::config::{ModelConfig, PYRAMID_LEVELS, STEM_KERNEL, STEM_PADDING, STEM_STRIDE};
 use crate::frame::{self, PATCH_CHANNELS};
 use crate::kernels::ops::{self, Activation};
-use crate::kernels::{Accumulate, ByteRows, ConvShape, DigitRows, Kernels, QuantizeScratch};
+use crate::kernels::{
+    Accumulate, ByteRows, ConvShape, DigitRows, Kernels, QuantizeScratch, Quantized, TrunkCodes,
+};
 use crate::layer::{self, Activations};
 use crate::plan::FrameLayout;
-use crate::weights::{Conv, ConvNorm, PyramidWeights, Weight};
+use crate::weights::{ActivationCodes, Conv, ConvNorm, PyramidWeights, Weight};
 
 /// Four activation buffers the residual blocks rotate through; the first holds the image
 /// (normalized, or its padded bytes for an int8 stem).
@@ -29,11 +31,10 @@ fn conv_norm(
     input: &[f32],
     output: &mut [f32],
     activation: Activation,
-    quantized: &mut QuantizeScratch<'_>,
+    scratch: &mut QuantizeScratch<'_>,
 ) {
-    let values = &input[..shape.input_len()];
-    let digits = is_int8(&layer.conv).then(|| quantized.quantize(kernels, values));
-    LayerInput { values, digits }.conv_norm(kernels, layer, shape, output, activation);
+    let mut input = LayerInput::new(&input[..shape.input_len()], None, scratch);
+    input.conv_norm(kernels, layer, shape, output, activation);
 }
 
 fn is_int8(conv: &Conv<'_>) -> bool {
@@ -41,19 +42,54 @@ fn is_int8(conv: &Conv<'_>) -> bool {
 }
 
 /// A trunk map as the layers reading it take it: the values, and for int8 weights their
-/// digit planes, quantized once for all the layers that read the map (a block's first
-/// convolution and its downsampling, and at a stage's start the level's projection, each
-/// quantized it again before).
-struct LayerInput<'v> {
+/// codes, quantized once for all the readers that take the same codes (a block's first
+/// convolution and its downsampling and, at a stage's start, the level's projection) and
+/// again only when a reader takes the other width.
+struct LayerInput<'v, 's, 'a> {
     values: &'v [f32],
-    digits: Option<DigitRows<'v>>,
+    /// The wide digits an on-demand level keeps in the frame for its projection.
+    kept: Option<DigitRows<'v>>,
+    scratch: &'s mut QuantizeScratch<'a>,
+    /// What `scratch` holds of this input, at which width.
+    quantized: Option<(ActivationCodes, Quantized)>,
 }
 
-impl LayerInput<'_> {
-    /// [`conv_norm`] on this input (`digits` hold it quantized whenever one of its readers
-    /// has int8 weights).
+impl<'v, 's, 'a> LayerInput<'v, 's, 'a> {
+    fn new(
+        values: &'v [f32],
+        kept: Option<DigitRows<'v>>,
+        scratch: &'s mut QuantizeScratch<'a>,
+    ) -> Self {
+        LayerInput {
+            values,
+            kept,
+            scratch,
+            quantized: None,
+        }
+    }
+
+    /// This input quantized to `width`.
+    fn codes(&mut self, kernels: &dyn Kernels, width: ActivationCodes) -> TrunkCodes<'_> {
+        if let (ActivationCodes::Wide, Some(kept)) = (width, self.kept) {
+            return TrunkCodes::Digits(kept);
+        }
+        let quantized = match self.quantized {
+            Some((held, quantized)) if held == width => quantized,
+            _ => {
+                let quantized = match width {
+                    ActivationCodes::Wide => self.scratch.quantize_wide(kernels, self.values),
+                    ActivationCodes::Narrow => self.scratch.quantize_narrow(kernels, self.values),
+                };
+                self.quantized = Some((width, quantized));
+                quantized
+            }
+        };
+        self.scratch.view(&quantized)
+    }
+
+    /// [`conv_norm`] on this input.
     fn conv_norm(
-        &self,
+        &mut self,
         kernels: &dyn Kernels,
         layer: &ConvNorm<'_>,
         shape: &ConvShape,
@@ -67,7 +103,7 @@ impl LayerInput<'_> {
 
     /// The convolution of `conv` on this input, overwriting `output`.
     fn convolve(
-        &self,
+        &mut self,
         kernels: &dyn Kernels,
         conv: &Conv<'_>,
         shape: &ConvShape,
@@ -75,14 +111,17 @@ impl LayerInput<'_> {
     ) {
         let output = &mut output[..shape.output_len()];
         let overwrite = Accumulate::Overwrite;
-        match (conv.weight, &self.digits) {
-            (Weight::Int8 { values, scales }, Some(digits)) => {
-                kernels.conv_int8(shape, digits, values, scales, conv.bias, output, overwrite)
+        match conv.weight {
+            Weight::Int8 {
+                values,
+                scales,
+                activations,
+            } => {
+                let codes = self.codes(kernels, activations);
+                let parameters = (values, scales, conv.bias);
+                layer::convolve_codes(kernels, shape, &codes, parameters, output, overwrite)
             }
-            (Weight::Int8 { .. }, None) => {
-                unreachable!("an input read by int8 weights is quantized first")
-            }
-            (Weight::F32(values), _) => {
+            Weight::F32(values) => {
                 let input = &self.values[..shape.input_len()];
                 kernels.conv(shape, input, values, conv.bias, output, overwrite)
             }
@@ -305,7 +344,7 @@ pub fn stem(
     let (pooled_height, pooled_width) = config.pyramid_size(0);
     let pooled_len = pooled_height * pooled_width * channels;
     let (values, scales) = match layer.conv.weight {
-        Weight::Int8 { values, scales } if !config.imagenet_norm => (values, scales),
+        Weight::Int8 { values, scales, .. } if !config.imagenet_norm => (values, scales),
         _ => {
             frame::normalize(config, image, pooled);
             let activation = Activation::Relu;
@@ -420,16 +459,11 @@ pub fn encode(
             // The layers reading the block's input: its first convolution, its downsampling
             // and, at a stage's start, the projection of the level it is the tap of.
             let level = (index == 0).then_some(stage);
-            let readers_int8 = is_int8(&block.first.conv)
-                || block
-                    .downsample
-                    .as_ref()
-                    .is_some_and(|layer| is_int8(&layer.conv));
             // An on-demand level keeps its input in the frame (quantized, for int8 weights)
-            // and the block's layers read those digits; a dense level is projected from the
-            // digits quantized here once for every reader.
+            // and the block's wide layers read those digits; a dense level is projected
+            // from the codes quantized here for every reader.
             let mut dense_map = None;
-            let mut digits = None;
+            let mut kept = None;
             if let Some(level) = level {
                 let projection = &weights.projections[level];
                 let LevelStore {
@@ -447,18 +481,13 @@ pub fn encode(
                     if is_int8(projection) {
                         let bytes: &[i8] = bytemuck::cast_slice(&*taps);
                         let planes = &bytes[..2 * values.len()];
-                        digits = Some(DigitRows::from_planes(planes, scale, nonnegative));
+                        kept = Some(DigitRows::from_planes(planes, scale, nonnegative));
                     }
                 } else {
                     dense_map = Some((level, projection, map));
                 }
             }
-            let needs_digits =
-                readers_int8 || dense_map.as_ref().is_some_and(|(_, conv, _)| is_int8(conv));
-            if digits.is_none() && needs_digits {
-                digits = Some(quantized.quantize(kernels, values));
-            }
-            let shared = LayerInput { values, digits };
+            let mut shared = LayerInput::new(values, kept, &mut quantized);
             if let Some((level, projection, map)) = dense_map {
                 let shape = projection_shape(config, level);
                 shared.convolve(kernels, projection, &shape, map);

@@ -69,6 +69,15 @@ impl ConvShape {
         }
     }
 
+    /// A 1x1 convolution of stride 1 without padding: a matrix product over pixels.
+    pub const fn is_pointwise(&self) -> bool {
+        self.kernel_height == 1
+            && self.kernel_width == 1
+            && self.stride == 1
+            && self.padding_height == 0
+            && self.padding_width == 0
+    }
+
     pub const fn out_height(&self) -> usize {
         conv_output(
             self.in_height,

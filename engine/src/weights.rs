@@ -25,22 +25,48 @@ pub trait TensorSource<'w> {
     fn f32_tensor(&mut self, name: fmt::Arguments<'_>, dims: &[usize]) -> Result<&'w [f32], Error>;
 
     /// The next weight matrix or kernel called `name` with `dims`: f32, or int8 followed by
-    /// its `channels` per-channel scales called `scale_name`. The weights tool chooses.
+    /// its `channels` per-channel scales called `scale_name`. The weights tool chooses, and
+    /// for an int8 layer that `narrow` allows ([`ActivationCodes::Narrow`]) also the codes
+    /// its input is quantized to.
     fn weight(
         &mut self,
         name: fmt::Arguments<'_>,
         scale_name: fmt::Arguments<'_>,
         dims: &[usize],
         channels: usize,
+        narrow: NarrowCodes,
     ) -> Result<Weight<'w>, Error>;
 }
 
+/// Whether a layer can take [`ActivationCodes::Narrow`]: only where its input is a ReLU
+/// output in one trunk map (the residual blocks' convolutions).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NarrowCodes {
+    Allowed,
+    NotAllowed,
+}
+
+/// The codes an int8 layer quantizes its input to (one scale for the whole input either
+/// way; docs/QUANTIZATION.md).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ActivationCodes {
+    /// 15-bit codes: two digit planes in the trunk, whole i16 codes in the U-Net and FiLM.
+    Wide,
+    /// 8-bit unsigned codes, one byte a value (`scale = max / 255`): half the trunk's
+    /// integer products, for nonnegative inputs.
+    Narrow,
+}
+
 /// A weight tensor as stored: f32, or symmetric int8 with one scale per output channel
-/// (`value = q * scale`).
+/// (`value = q * scale`) and the codes its layer's input is quantized to.
 #[derive(Clone, Copy, Debug)]
 pub enum Weight<'w> {
     F32(&'w [f32]),
-    Int8 { values: &'w [i8], scales: &'w [f32] },
+    Int8 {
+        values: &'w [i8],
+        scales: &'w [f32],
+        activations: ActivationCodes,
+    },
 }
 
 impl Default for Weight<'_> {
@@ -131,26 +157,34 @@ impl<'w> TensorSource<'w> for FileSource<'w> {
         scale_name: fmt::Arguments<'_>,
         dims: &[usize],
         channels: usize,
+        narrow: NarrowCodes,
     ) -> Result<Weight<'w>, Error> {
         let (index, entry) = self.next_entry(name, dims)?;
-        match entry.dtype {
-            DType::F32 => Ok(Weight::F32(self.f32_data(index, &entry)?)),
-            DType::I8 => {
-                // An int8 convolution sums its codes exactly in i32 only up to
-                // MAX_DIGIT_CHANNELS inputs (the tool stores wider ones in f32).
-                if !crate::kernels::int8_fits(dims) {
-                    return Err(Error::UnexpectedTensor { index });
-                }
-                let values = bytemuck::cast_slice(self.file.data(&entry));
-                let scales = self.f32_tensor(scale_name, &[channels])?;
-                // A zero, negative or non-finite scale is not a quantization anyone wrote.
-                if scales.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
-                    return Err(Error::UnexpectedTensor { index: index + 1 });
-                }
-                self.int8_seen = true;
-                Ok(Weight::Int8 { values, scales })
-            }
+        let activations = match entry.dtype {
+            DType::F32 => return Ok(Weight::F32(self.f32_data(index, &entry)?)),
+            DType::I8 => ActivationCodes::Wide,
+            DType::I8Narrow if narrow == NarrowCodes::Allowed => ActivationCodes::Narrow,
+            // A layer whose input may be negative, or is quantized for several readers
+            // at once, has no narrow path.
+            DType::I8Narrow => return Err(Error::UnexpectedTensor { index }),
+        };
+        // An int8 convolution sums its codes exactly in i32 only up to MAX_DIGIT_CHANNELS
+        // inputs (the tool stores wider ones in f32).
+        if !crate::kernels::int8_fits(dims) {
+            return Err(Error::UnexpectedTensor { index });
         }
+        let values = bytemuck::cast_slice(self.file.data(&entry));
+        let scales = self.f32_tensor(scale_name, &[channels])?;
+        // A zero, negative or non-finite scale is not a quantization anyone wrote.
+        if scales.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+            return Err(Error::UnexpectedTensor { index: index + 1 });
+        }
+        self.int8_seen = true;
+        Ok(Weight::Int8 {
+            values,
+            scales,
+            activations,
+        })
     }
 }
 
@@ -254,6 +288,15 @@ fn conv<'w>(
     name: fmt::Arguments<'_>,
     weight_dims: &[usize],
 ) -> Result<Conv<'w>, Error> {
+    conv_codes(source, name, weight_dims, NarrowCodes::NotAllowed)
+}
+
+fn conv_codes<'w>(
+    source: &mut impl TensorSource<'w>,
+    name: fmt::Arguments<'_>,
+    weight_dims: &[usize],
+    narrow: NarrowCodes,
+) -> Result<Conv<'w>, Error> {
     let out = weight_dims[weight_dims.len() - 1];
     Ok(Conv {
         weight: source.weight(
@@ -261,6 +304,7 @@ fn conv<'w>(
             format_args!("{name}.weight_scale"),
             weight_dims,
             out,
+            narrow,
         )?,
         bias: source.f32_tensor(format_args!("{name}.bias"), &[out])?,
     })
@@ -280,11 +324,11 @@ fn norm<'w>(
 fn conv_norm<'w>(
     source: &mut impl TensorSource<'w>,
     config: &ModelConfig,
-    conv_name: fmt::Arguments<'_>,
-    norm_name: fmt::Arguments<'_>,
+    (conv_name, norm_name): (fmt::Arguments<'_>, fmt::Arguments<'_>),
     weight_dims: &[usize],
+    narrow: NarrowCodes,
 ) -> Result<ConvNorm<'w>, Error> {
-    let conv = conv(source, conv_name, weight_dims)?;
+    let conv = conv_codes(source, conv_name, weight_dims, narrow)?;
     let norm = match config.backbone_norm {
         BackboneNorm::Group => Some(norm(source, norm_name, weight_dims[3])?),
         BackboneNorm::Batch => None,
@@ -321,6 +365,7 @@ fn residual_block<'w>(
             format_args!("{name}.film.weight_scale"),
             &[2 * out_channels, config.global_cond_dim()],
             2 * out_channels,
+            NarrowCodes::NotAllowed,
         )?,
         film_table: source.f32_tensor(
             format_args!("{name}.film.table"),
@@ -346,12 +391,13 @@ impl<'w> ModelWeights<'w> {
 
         let width = config.stage_channels(0);
         let pyramid = &mut weights.pyramid;
+        // The stem reads the image bytes, already 8-bit codes.
         pyramid.stem = conv_norm(
             source,
             config,
-            format_args!("backbone.conv1"),
-            format_args!("backbone.bn1"),
+            (format_args!("backbone.conv1"), format_args!("backbone.bn1")),
             &[7, 7, 3, width],
+            NarrowCodes::NotAllowed,
         )?;
         let mut in_channels = width;
         for (stage, blocks) in pyramid.stages.iter_mut().enumerate() {
@@ -363,27 +409,38 @@ impl<'w> ModelWeights<'w> {
                 } else {
                     out_channels
                 };
+                // Every input of a residual block's convolutions is a ReLU output.
+                let narrow = NarrowCodes::Allowed;
                 block.first = conv_norm(
                     source,
                     config,
-                    format_args!("backbone.layer{layer}.{index}.conv1"),
-                    format_args!("backbone.layer{layer}.{index}.bn1"),
+                    (
+                        format_args!("backbone.layer{layer}.{index}.conv1"),
+                        format_args!("backbone.layer{layer}.{index}.bn1"),
+                    ),
                     &[3, 3, block_in, out_channels],
+                    narrow,
                 )?;
                 block.second = conv_norm(
                     source,
                     config,
-                    format_args!("backbone.layer{layer}.{index}.conv2"),
-                    format_args!("backbone.layer{layer}.{index}.bn2"),
+                    (
+                        format_args!("backbone.layer{layer}.{index}.conv2"),
+                        format_args!("backbone.layer{layer}.{index}.bn2"),
+                    ),
                     &[3, 3, out_channels, out_channels],
+                    narrow,
                 )?;
                 block.downsample = if index == 0 && stage > 0 {
                     Some(conv_norm(
                         source,
                         config,
-                        format_args!("backbone.layer{layer}.0.downsample.0"),
-                        format_args!("backbone.layer{layer}.0.downsample.1"),
+                        (
+                            format_args!("backbone.layer{layer}.0.downsample.0"),
+                            format_args!("backbone.layer{layer}.0.downsample.1"),
+                        ),
                         &[1, 1, block_in, out_channels],
+                        narrow,
                     )?)
                 } else {
                     None

@@ -10,7 +10,9 @@ use scdp_engine::kernels::x86_64::amx::{Amx, TileLayout};
 /// Elsewhere no tile layout runs: `check_on_tiles` reports `None`.
 #[cfg(not(target_arch = "x86_64"))]
 type TileLayout = ();
-use scdp_engine::kernels::{Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels};
+use scdp_engine::kernels::{
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, NarrowForm, QuantizeScratch,
+};
 
 struct Lcg(u64);
 
@@ -1411,6 +1413,199 @@ fn byte_convolution_equals_the_digit_convolution_on_every_backend() {
     if Amx::detect().is_some() {
         assert!(on_tiles >= 10, "only {on_tiles} cases ran on the tiles");
     }
+}
+
+/// The narrow activations' convolution on whole bytes (`conv_int8_bytes` over the residual
+/// blocks' shapes: 3x3 and 1x1 kernels, strides 1 and 2, padding, input channels up to 512
+/// and ones not a multiple of 4, output channels off the tiles' blocks, maps of one pixel
+/// and more): every backend bit for bit against the scalar reference, which equals
+/// `conv_int8` on the same bytes split into digits; bytes 0 and 255 and weights -128 and
+/// 127 included. Then the path a model takes: each backend quantizes the same input in its
+/// own narrow form and convolves it, and gets the reference's bits.
+#[test]
+fn narrow_byte_convolution_is_bit_identical_on_every_backend() {
+    let mut rng = Lcg(83);
+    let backends = backends();
+    for case in 0..60 {
+        let kernel = [1, 3][case % 2];
+        let stride = 1 + rng.below(2);
+        let padding = if kernel == 3 { rng.below(2) } else { 0 };
+        let in_channels = match case % 5 {
+            0 => [256, 512][rng.below(2)],
+            1 => [3, 6, 13][rng.below(3)],
+            _ => 4 * (1 + rng.below(32)),
+        };
+        let out_channels = match case % 3 {
+            0 => 64 * (1 + rng.below(2)),
+            1 => 16 * (1 + rng.below(4)) + [0, 8, 5][rng.below(3)],
+            _ => 1 + rng.below(40),
+        };
+        let (height, width) = if in_channels >= 256 {
+            (1 + rng.below(3), 1 + rng.below(4))
+        } else {
+            (1 + rng.below(7), 1 + rng.below(9))
+        };
+        if height.min(width) + 2 * padding < kernel {
+            continue;
+        }
+        let shape = ConvShape::square(
+            (height, width, in_channels),
+            out_channels,
+            kernel,
+            stride,
+            padding,
+        );
+        let bytes: Vec<u8> = (0..shape.input_len())
+            .map(|i| match i % 5 {
+                0 => 255,
+                1 => 0,
+                _ => (rng.next().abs() * 255.0) as u8,
+            })
+            .collect();
+        let mut weight = random_i8(&mut rng, shape.weight_len());
+        weight[0] = -128;
+        weight[shape.weight_len() - 1] = 127;
+        let mut packed = vec![0i8; shape.int8_weight_len()];
+        scdp_engine::kernels::pack_int8_quads(&weight, in_channels, out_channels, &mut packed);
+        let weight_scales: Vec<f32> = (0..out_channels)
+            .map(|_| 0.001 + rng.next().abs() * 0.01)
+            .collect();
+        let bias = rng.vec(out_channels);
+        let input = ByteRows {
+            bytes: &bytes,
+            scale: 0.01 + rng.next().abs(),
+        };
+        let initial = rng.vec(shape.output_len());
+        for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
+            let run = |kernels: &dyn Kernels| {
+                let mut output = initial.clone();
+                kernels.conv_int8_bytes(
+                    &shape,
+                    &input,
+                    &packed,
+                    &weight_scales,
+                    &bias,
+                    &mut output,
+                    accumulate,
+                );
+                output
+            };
+            let expected = run(&Scalar);
+            let high: Vec<i8> = bytes.iter().map(|&b| (b >> 7) as i8).collect();
+            let low: Vec<i8> = bytes.iter().map(|&b| (b & 127) as i8).collect();
+            let digits = DigitRows {
+                high: &high,
+                low: &low,
+                scale: input.scale,
+                nonnegative: true,
+            };
+            let mut split = initial.clone();
+            Scalar.conv_int8(
+                &shape,
+                &digits,
+                &packed,
+                &weight_scales,
+                &bias,
+                &mut split,
+                accumulate,
+            );
+            let what = format!("case {case} {shape:?} {accumulate:?}");
+            assert_same_bits(&split, &expected, &format!("{what}: digits against bytes"));
+            for (name, kernels) in &backends {
+                assert_same_bits(&run(*kernels), &expected, &format!("{what} {name}"));
+            }
+        }
+        // The model's path: quantize in the backend's form, then convolve.
+        let values: Vec<f32> = (0..shape.input_len())
+            .map(|i| if i % 7 == 0 { 0.0 } else { rng.next().abs() * 3.0 })
+            .collect();
+        let convolve = |kernels: &dyn Kernels| {
+            let mut scratch = vec![0i8; 2 * values.len()];
+            let mut quantize = QuantizeScratch {
+                values: &mut scratch,
+            };
+            let quantized = quantize.quantize_narrow(kernels, &values);
+            let codes = quantize.view(&quantized);
+            let mut output = vec![0.0; shape.output_len()];
+            let parameters = (&packed[..], &weight_scales[..], &bias[..]);
+            scdp_engine::layer::convolve_codes(
+                kernels,
+                &shape,
+                &codes,
+                parameters,
+                &mut output,
+                Accumulate::Overwrite,
+            );
+            output
+        };
+        let expected = convolve(&Scalar);
+        for (name, kernels) in &backends {
+            let what = format!("case {case} {shape:?} quantized narrow on {name}");
+            assert_same_bits(&convolve(*kernels), &expected, &what);
+        }
+    }
+}
+
+/// The narrow forms each backend asks for: whole bytes where its byte products take 0..=255
+/// (the reference, VNNI), digit planes otherwise (AVX2's `vpmaddubsw` saturates; AMX runs
+/// its two-plane tiles). A backend quietly falling back to the digits would still pass the
+/// bit-identity tests while giving up the narrow path's speed.
+#[test]
+fn backends_read_narrow_codes_in_their_fastest_form() {
+    for (name, kernels) in backends() {
+        let expected = match name {
+            "scalar" | "avx512" => NarrowForm::Bytes,
+            _ => NarrowForm::Digits,
+        };
+        assert_eq!(kernels.narrow_form(), expected, "{name}");
+    }
+}
+
+/// Narrow quantization: `scale = max / 255`, codes within half a step of the input, the
+/// largest value at 255, zero at 0; the digit-plane form holds the same codes; every
+/// backend's quantizer gives the portable one's bytes; an all-zero input has scale 1 and a
+/// non-finite one a NaN scale (so the NaN reaches the result).
+#[test]
+fn narrow_quantization_round_trips_within_half_a_step() {
+    let mut rng = Lcg(97);
+    let input: Vec<f32> = (0..1001)
+        .map(|i| if i % 9 == 0 { 0.0 } else { rng.next().abs() * 4.0 })
+        .collect();
+    let mut bytes = vec![0u8; input.len()];
+    let scale = ops::quantize_bytes(&input, &mut bytes);
+    let largest = input.iter().fold(0.0f32, |m, x| m.max(*x));
+    assert_eq!(scale, largest / 255.0);
+    assert!(bytes.contains(&255));
+    for (&x, &code) in input.iter().zip(&bytes) {
+        assert!(
+            (code as f32 * scale - x).abs() <= 0.5 * scale * (1.0 + 1e-5),
+            "{x} -> {code}"
+        );
+        assert!(x != 0.0 || code == 0, "{x} -> {code}");
+    }
+    let (mut high, mut low) = (vec![0i8; input.len()], vec![0i8; input.len()]);
+    assert_eq!(ops::quantize_bytes_split(&input, &mut high, &mut low), scale);
+    for ((&h, &l), &code) in high.iter().zip(&low).zip(&bytes) {
+        assert!((0..=1).contains(&h) && (0..=127).contains(&l));
+        assert_eq!(h as i32 * 128 + l as i32, code as i32);
+    }
+    for (name, kernels) in backends() {
+        for form in [NarrowForm::Bytes, NarrowForm::Digits] {
+            let mut found = vec![0i8; 2 * input.len()];
+            let mut expected = vec![0i8; 2 * input.len()];
+            let found_scale = kernels.quantize_narrow(&input, &mut found, form);
+            let expected_scale = ops::quantize_narrow(&input, &mut expected, form);
+            assert_eq!(found_scale.to_bits(), expected_scale.to_bits(), "{name} {form:?}");
+            assert_eq!(found, expected, "{name} {form:?}");
+        }
+    }
+    let mut zeros = [1u8; 3];
+    assert_eq!(ops::quantize_bytes(&[0.0; 3], &mut zeros), 1.0);
+    assert_eq!(zeros, [0; 3]);
+    let mut codes = [1u8; 2];
+    assert!(ops::quantize_bytes(&[1.0, f32::NAN], &mut codes).is_nan());
+    assert!(ops::quantize_bytes(&[f32::INFINITY, 1.0], &mut codes).is_nan());
+    assert_eq!(codes, [0, 0]);
 }
 
 /// The largest products the int8 kernels can meet: activations all 127 against weights all

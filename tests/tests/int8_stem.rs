@@ -15,7 +15,7 @@ use scdp_engine::kernels::{
 };
 use scdp_engine::pyramid;
 use scdp_engine::rng::NoiseRng;
-use scdp_engine::weights::{Conv, ConvNorm, Norm, Weight};
+use scdp_engine::weights::{ActivationCodes, Conv, ConvNorm, Norm, Weight};
 use scdp_tests::available_backends;
 
 #[test]
@@ -82,6 +82,7 @@ fn int8_stem_over_patches_equals_the_7x7_convolution() {
             weight: Weight::Int8 {
                 values: &weight,
                 scales: &scales,
+                activations: ActivationCodes::Wide,
             },
             bias: &bias,
         },

@@ -52,20 +52,35 @@ pub fn report(bytes: &[u8]) -> Result<String> {
         mebibytes(plan.scratch * 4)
     )?;
     writeln!(out, "\n[config]\n{}", config_to_toml(config))?;
+    let entries = (0..file.tensor_count())
+        .map(|index| file.entry(index))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|error| anyhow::anyhow!("{error}"))?;
+    if file.quant() == Quant::Int8 {
+        let count = |dtype: DType| entries.iter().filter(|entry| entry.dtype == dtype).count();
+        writeln!(
+            out,
+            "int8 activations: {} layers on 15-bit codes (i8), {} on 8-bit codes (i8a8, docs/QUANTIZATION.md)",
+            count(DType::I8),
+            count(DType::I8Narrow)
+        )?;
+        for entry in entries.iter().filter(|entry| entry.dtype == DType::I8Narrow) {
+            writeln!(out, "  8-bit  {}", entry.name)?;
+        }
+        writeln!(out)?;
+    }
     writeln!(
         out,
         "{:<48} {:>5} {:<22} {:>12} {:>12}",
         "tensor", "dtype", "shape", "offset", "bytes"
     )?;
     let mut parameters = 0usize;
-    for index in 0..file.tensor_count() {
-        let entry = file
-            .entry(index)
-            .map_err(|error| anyhow::anyhow!("{error}"))?;
+    for entry in &entries {
         parameters += entry.element_count();
         let dtype = match entry.dtype {
             DType::F32 => "f32",
             DType::I8 => "i8",
+            DType::I8Narrow => "i8a8",
         };
         writeln!(
             out,

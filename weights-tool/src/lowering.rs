@@ -13,6 +13,7 @@ use std::collections::BTreeMap;
 
 use anyhow::{Context, Result, bail, ensure};
 use scdp_engine::config::{BackboneNorm, ModelConfig, UNET_LEVELS};
+use scdp_engine::weights::ActivationCodes;
 
 use crate::gptq::ChannelAxis;
 use crate::quant::Quant;
@@ -663,6 +664,7 @@ fn quantize_per_channel(values: &[f32], channels: usize, axis: ChannelAxis) -> S
     Stored::Int8 {
         values: quantized,
         scales,
+        activations: ActivationCodes::Wide,
     }
 }
 
@@ -750,7 +752,7 @@ pub fn store_keeping(
                     ChannelAxis::Last
                 };
                 let mut quantized = quantize_per_channel(&values, channels, axis);
-                if let (Rounding::Calibrated(moments), Stored::Int8 { values: q, scales }) =
+                if let (Rounding::Calibrated(moments), Stored::Int8 { values: q, scales, .. }) =
                     (rounding, &mut quantized)
                     && let Some(moment) = moments.get(&name)
                 {
@@ -761,7 +763,14 @@ pub fn store_keeping(
                 // integer dot products (docs/FORMAT.md); FiLM matrices stay as they are.
                 let taps_in_out = scdp_engine::kernels::int8_convolution(&spec.dims);
                 match (quantized, taps_in_out) {
-                    (Stored::Int8 { values, scales }, Some((_, input, output))) => {
+                    (
+                        Stored::Int8 {
+                            values,
+                            scales,
+                            activations,
+                        },
+                        Some((_, input, output)),
+                    ) => {
                         let stored = scdp_engine::kernels::int8_stored_elements(&spec.dims)
                             .with_context(|| format!("size of `{name}`"))?;
                         let mut packed = vec![0i8; stored];
@@ -769,6 +778,7 @@ pub fn store_keeping(
                         Stored::Int8 {
                             values: packed,
                             scales,
+                            activations,
                         }
                     }
                     (quantized, _) => quantized,

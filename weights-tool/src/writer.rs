@@ -12,7 +12,7 @@ use scdp_engine::format::{
     self, ALIGN, CHECKSUM_RANGE, CONFIG_BYTES, DType, ENTRY_BYTES, HEADER_BYTES, MAGIC, NAME_BYTES,
     Quant, VERSION,
 };
-use scdp_engine::weights::{ModelWeights, TensorSource, Weight};
+use scdp_engine::weights::{ActivationCodes, ModelWeights, NarrowCodes, TensorSource, Weight};
 
 /// One tensor the engine will ask for, in order.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -22,16 +22,20 @@ pub struct TensorSpec {
     /// For weight matrices and kernels, which may be stored as int8: the name of the scale
     /// tensor that then follows, and how many scales (output channels) it has.
     pub int8_scales: Option<(String, usize)>,
+    /// Whether the layer can quantize its input to narrow (8-bit) codes.
+    pub narrow: NarrowCodes,
 }
 
 /// A tensor as it will be stored.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Stored {
     F32(Vec<f32>),
-    /// Symmetric int8 with one scale per output channel.
+    /// Symmetric int8 with one scale per output channel, and the codes the layer
+    /// quantizes its input to.
     Int8 {
         values: Vec<i8>,
         scales: Vec<f32>,
+        activations: ActivationCodes,
     },
 }
 
@@ -48,6 +52,7 @@ impl TensorSource<'static> for Recorder {
             name: name.to_string(),
             dims: dims.to_vec(),
             int8_scales: None,
+            narrow: NarrowCodes::NotAllowed,
         });
         Ok(&[])
     }
@@ -58,11 +63,13 @@ impl TensorSource<'static> for Recorder {
         scale_name: fmt::Arguments<'_>,
         dims: &[usize],
         channels: usize,
+        narrow: NarrowCodes,
     ) -> Result<Weight<'static>, EngineError> {
         self.0.push(TensorSpec {
             name: name.to_string(),
             dims: dims.to_vec(),
             int8_scales: Some((scale_name.to_string(), channels)),
+            narrow,
         });
         Ok(Weight::F32(&[]))
     }
@@ -125,10 +132,23 @@ pub fn write_weights_file(
                     bytes: values.iter().flat_map(|v| v.to_le_bytes()).collect(),
                 });
             }
-            Stored::Int8 { values, scales } => {
+            Stored::Int8 {
+                values,
+                scales,
+                activations,
+            } => {
                 let Some((scale_name, channels)) = &spec.int8_scales else {
                     bail!("internal: `{}` cannot be stored as int8", spec.name);
                 };
+                let dtype = match activations {
+                    ActivationCodes::Wide => DType::I8,
+                    ActivationCodes::Narrow => DType::I8Narrow,
+                };
+                ensure!(
+                    dtype == DType::I8 || spec.narrow == NarrowCodes::Allowed,
+                    "internal: `{}` cannot take narrow activations",
+                    spec.name
+                );
                 // Convolution kernels are stored in input-channel quads (docs/FORMAT.md).
                 let stored_elements =
                     scdp_engine::kernels::int8_stored_elements(&spec.dims).unwrap_or(elements);
@@ -142,7 +162,7 @@ pub fn write_weights_file(
                 entries.push(Entry {
                     name: &spec.name,
                     dims: spec.dims.clone(),
-                    dtype: DType::I8,
+                    dtype,
                     bytes: values.iter().map(|&v| v as u8).collect(),
                 });
                 entries.push(Entry {

@@ -215,15 +215,17 @@ pub trait Kernels: Sync {
         accumulate: Accumulate,
     );
 
-    /// [`conv_int8`](Self::conv_int8) of a pointwise convolution (1x1, stride 1, no
-    /// padding: a matrix product over pixels) whose codes are bytes in one plane
-    /// ([`ByteRows`], 1 to [`MAX_BYTE_CHANNELS`] a pixel): the same exact sums, rounding
-    /// and scaling, so the same bits as `conv_int8` on the bytes split into digits
-    /// (`byte = 128 (byte >> 7) + (byte & 127)`). This default does that split, a few
-    /// pixels at a time; the AMX tiles multiply whole bytes, half the products.
+    /// [`conv_int8`](Self::conv_int8) on codes that are bytes in one plane ([`ByteRows`]:
+    /// the stem's patches of image bytes, as a pointwise convolution, and the residual
+    /// blocks' narrow activations): the same exact sums (over at most [`MAX_BYTE_TERMS`]
+    /// products, so they fit i32), rounding and scaling, so the same bits as `conv_int8` on
+    /// the bytes split into digits (`byte = 128 (byte >> 7) + (byte & 127)`). This default
+    /// does that split a few pixels at a time for a pointwise convolution and runs the
+    /// scalar reference otherwise; VNNI's and the AMX tiles' byte products take whole bytes,
+    /// half the products.
     ///
     /// # Panics
-    /// If the shape is not pointwise or a slice is shorter than the contract makes it.
+    /// If a slice is shorter than the contract makes it.
     #[allow(clippy::too_many_arguments)]
     fn conv_int8_bytes(
         &self,
@@ -238,6 +240,10 @@ pub trait Kernels: Sync {
         const CHUNK: usize = 4 * MAX_BYTE_CHANNELS;
         scalar::assert_byte_lengths(shape, input, (weight, weight_scales, bias), output.len());
         let (channels, out_channels) = (shape.in_channels, shape.out_channels);
+        if !shape.is_pointwise() || channels > MAX_BYTE_CHANNELS {
+            let parameters = (weight, weight_scales, bias);
+            return scalar::conv_int8_bytes(shape, input, parameters, output, accumulate);
+        }
         let (mut high, mut low) = ([0i8; CHUNK], [0i8; CHUNK]);
         let pixels_per_chunk = CHUNK / channels;
         let rows = input.bytes.chunks(pixels_per_chunk * channels);
@@ -305,6 +311,21 @@ pub trait Kernels: Sync {
     /// the portable code for their vectors and give the same bits.
     fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {
         ops::quantize_split_signs(input, digits.0, digits.1)
+    }
+
+    /// The form in which this implementation takes narrow codes fastest: whole bytes for
+    /// [`conv_int8_bytes`](Self::conv_int8_bytes), or (the default, which every
+    /// implementation's [`conv_int8`](Self::conv_int8) takes) two digit planes. The codes,
+    /// and so the bits, are the same either way.
+    fn narrow_form(&self) -> NarrowForm {
+        NarrowForm::Digits
+    }
+
+    /// [`ops::quantize_narrow`]: the 8-bit codes of a nonnegative `input` (one scale for all
+    /// of it) into the front of `scratch` in `form`; returns the scale. Element-wise, the
+    /// portable code compiled for each implementation's vectors.
+    fn quantize_narrow(&self, input: &[f32], scratch: &mut [i8], form: NarrowForm) -> f32 {
+        ops::quantize_narrow(input, scratch, form)
     }
 
     /// [`ops::quantize_rows_codes`]: 15-bit symmetric quantization of `input`, one scale
@@ -376,13 +397,19 @@ pub const MAX_DIGIT_CHANNELS: usize = 1024;
 /// kernel over [`MAX_DIGIT_CHANNELS`] inputs has 50,176.
 pub const MAX_DIGIT_TERMS: usize = 131_072;
 
-/// Input channels a pixel of [`ByteRows`] holds at most: the stem's patches have 196, and
-/// `255 x 128 x 256 < 2^24`, so a pixel's exact sum is also exact in f32.
+/// Input channels of a pointwise convolution on [`ByteRows`] that the default
+/// [`Kernels::conv_int8_bytes`] splits into digit planes on the stack: the stem's patches
+/// have 196.
 pub const MAX_BYTE_CHANNELS: usize = 256;
 
+/// Products (kernel taps x input channels) up to which a convolution's exact sum over
+/// bytes fits i32: `255 x 128 x 65536 < 2^31`. A 3x3 kernel over 1024 inputs has 9,216.
+pub const MAX_BYTE_TERMS: usize = 65_536;
+
 /// Activation codes that are bytes (0..=255) in one plane, with one scale for the whole
-/// input: the int8 stem's patches of image bytes. The matrix tiles multiply whole bytes;
-/// the vector kernels read them as two digit planes ([`DigitRows`]).
+/// input: the int8 stem's patches of image bytes, and the narrow activations of the
+/// residual blocks ([`ops::quantize_bytes`]). VNNI's `vpdpbusd` and the matrix tiles
+/// multiply whole bytes; AVX2 reads them as two digit planes ([`DigitRows`]).
 #[derive(Clone, Copy, Debug)]
 pub struct ByteRows<'a> {
     pub bytes: &'a [u8],
@@ -406,8 +433,39 @@ impl CodeRows<'_> {
     }
 }
 
+/// How narrow (8-bit) codes are laid out: one plane of bytes ([`ByteRows`]), or the same
+/// codes as two digit planes ([`DigitRows`], the high digit 0 or 1) for byte products
+/// that take 7-bit activations only.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NarrowForm {
+    Bytes,
+    Digits,
+}
+
+/// A trunk layer's quantized input as its convolution reads it:
+/// [`Kernels::conv_int8`] on digit planes (15-bit codes, or narrow codes split),
+/// [`Kernels::conv_int8_bytes`] on whole bytes.
+#[derive(Clone, Copy, Debug)]
+pub enum TrunkCodes<'a> {
+    Digits(DigitRows<'a>),
+    Bytes(ByteRows<'a>),
+}
+
+/// What one quantization left at the front of a [`QuantizeScratch`], to view it again
+/// ([`QuantizeScratch::view`]) for another layer reading the same input.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Quantized {
+    /// Values quantized.
+    pub len: usize,
+    /// One plane of bytes (narrow codes) or two digit planes.
+    pub form: NarrowForm,
+    pub scale: f32,
+    /// Every code is nonnegative ([`DigitRows::nonnegative`]; narrow codes always are).
+    pub nonnegative: bool,
+}
+
 /// Arena space for quantizing one layer input: its two digit planes (the high digits, then
-/// the low ones), or its whole codes.
+/// the low ones), its bytes, or its whole codes.
 #[derive(Debug)]
 pub struct QuantizeScratch<'a> {
     pub values: &'a mut [i8],
@@ -445,9 +503,54 @@ impl QuantizeScratch<'_> {
     /// Quantizes `input` (the activation scheme of int8 weights files,
     /// [`ops::quantize_split_signs`]) and returns the view.
     pub fn quantize(&mut self, kernels: &dyn Kernels, input: &[f32]) -> DigitRows<'_> {
+        let quantized = self.quantize_wide(kernels, input);
+        DigitRows::from_planes(&self.values[..2 * input.len()], quantized.scale, quantized.nonnegative)
+    }
+
+    /// [`quantize`](Self::quantize), returning what [`view`](Self::view) needs.
+    pub fn quantize_wide(&mut self, kernels: &dyn Kernels, input: &[f32]) -> Quantized {
         let (high, low) = self.values[..2 * input.len()].split_at_mut(input.len());
         let (scale, nonnegative) = kernels.quantize_digits(input, (high, low));
-        DigitRows::from_planes(&self.values[..2 * input.len()], scale, nonnegative)
+        Quantized {
+            len: input.len(),
+            form: NarrowForm::Digits,
+            scale,
+            nonnegative,
+        }
+    }
+
+    /// Quantizes a nonnegative `input` to narrow codes ([`ops::quantize_bytes`]) in the
+    /// form `kernels` reads fastest.
+    pub fn quantize_narrow(&mut self, kernels: &dyn Kernels, input: &[f32]) -> Quantized {
+        let form = kernels.narrow_form();
+        let scale = kernels.quantize_narrow(input, self.values, form);
+        Quantized {
+            len: input.len(),
+            form,
+            scale,
+            nonnegative: true,
+        }
+    }
+
+    /// The codes a quantization of this scratch left, as a convolution reads them.
+    pub fn view(&self, quantized: &Quantized) -> TrunkCodes<'_> {
+        let Quantized {
+            len,
+            form,
+            scale,
+            nonnegative,
+        } = *quantized;
+        match form {
+            NarrowForm::Bytes => TrunkCodes::Bytes(ByteRows {
+                bytes: bytemuck::cast_slice(&self.values[..len]),
+                scale,
+            }),
+            NarrowForm::Digits => TrunkCodes::Digits(DigitRows::from_planes(
+                &self.values[..2 * len],
+                scale,
+                nonnegative,
+            )),
+        }
     }
 
     /// Quantizes `input`, rows of `row_len` values, to whole codes ([`CodeRows`]) in the

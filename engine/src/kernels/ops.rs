@@ -577,6 +577,78 @@ pub fn quantize_rows_codes(
     largest / SPLIT_CODE_LIMIT
 }
 
+/// Largest code of the narrow activation scheme: one unsigned byte.
+pub const BYTE_CODE_LIMIT: f32 = 255.0;
+
+/// The narrow code of `x` for `inverse = 255 / largest`: `round(x * inverse)`, ties away
+/// from zero, in [0, 255] (a negative value, which no ReLU output is, becomes 0).
+///
+/// # Safety
+/// `x` is finite and |x| <= `largest`, which is finite and nonzero.
+#[inline(always)]
+unsafe fn byte_code(x: f32, inverse: f32) -> i32 {
+    // SAFETY: |x * inverse| is at most 255 (the caller's promise), finite, and a rounding.
+    unsafe { round_half_away(x * inverse) }.clamp(0, 255)
+}
+
+/// Unsigned 8-bit quantization of a nonnegative input (a ReLU output), one scale for all
+/// of it: `scale = max |x| / 255`, `code = round(x / scale)` (ties away from zero) in
+/// [0, 255], one byte a value: the narrow activations, whose byte products are half the
+/// two digit planes' of [`quantize_split_signs`]. Returns the scale (1 for an all-zero
+/// input, NaN for a non-finite one, with zero codes).
+#[inline(always)]
+pub fn quantize_bytes(input: &[f32], bytes: &mut [u8]) -> f32 {
+    let largest = largest_magnitude(input);
+    if let Some(scale) = zero_code_scale(largest) {
+        bytes.fill(0);
+        return scale;
+    }
+    let inverse = BYTE_CODE_LIMIT / largest;
+    for (byte, &x) in bytes.iter_mut().zip(input) {
+        // SAFETY: x is one of the values `largest` was taken over, finite and nonzero.
+        *byte = unsafe { byte_code(x, inverse) } as u8;
+    }
+    largest / BYTE_CODE_LIMIT
+}
+
+/// [`quantize_bytes`] into the front of `scratch` in `form`: whole bytes (`input.len()`
+/// bytes), or the two digit planes of [`quantize_bytes_split`] back to back (twice that).
+#[inline(always)]
+pub fn quantize_narrow(input: &[f32], scratch: &mut [i8], form: super::NarrowForm) -> f32 {
+    let len = input.len();
+    match form {
+        super::NarrowForm::Bytes => {
+            quantize_bytes(input, bytemuck::cast_slice_mut(&mut scratch[..len]))
+        }
+        super::NarrowForm::Digits => {
+            let (high, low) = scratch[..2 * len].split_at_mut(len);
+            quantize_bytes_split(input, high, low)
+        }
+    }
+}
+
+/// The codes of [`quantize_bytes`] written as two digit planes, `high = code >> 7` (0 or 1)
+/// and `low = code & 127`, for integer products that take 7-bit activations only (AVX2's
+/// `vpmaddubsw` saturates on 255 x 127 pairs): the same codes, so a kernel summing
+/// `128 high + low` gets the same exact sums. Returns the scale as [`quantize_bytes`] does.
+#[inline(always)]
+pub fn quantize_bytes_split(input: &[f32], high: &mut [i8], low: &mut [i8]) -> f32 {
+    let largest = largest_magnitude(input);
+    if let Some(scale) = zero_code_scale(largest) {
+        high.fill(0);
+        low.fill(0);
+        return scale;
+    }
+    let inverse = BYTE_CODE_LIMIT / largest;
+    for ((h, l), &x) in high.iter_mut().zip(low.iter_mut()).zip(input) {
+        // SAFETY: as in `quantize_bytes`.
+        let code = unsafe { byte_code(x, inverse) };
+        *h = (code >> 7) as i8;
+        *l = (code & 127) as i8;
+    }
+    largest / BYTE_CODE_LIMIT
+}
+
 #[cfg(test)]
 mod tests {
     use super::{exp, round_half_away};

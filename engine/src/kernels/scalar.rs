@@ -2,8 +2,8 @@
 //! implementations are tested against it.
 
 use super::{
-    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, Kernels,
-    MAX_BYTE_CHANNELS, MAX_DIGIT_CHANNELS, MAX_DIGIT_TERMS, QUAD, ops,
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, Kernels, NarrowForm,
+    MAX_BYTE_TERMS, MAX_DIGIT_CHANNELS, MAX_DIGIT_TERMS, QUAD, ops,
 };
 
 /// Output channels accumulated at once in the int8 kernels (an i32 block on the stack): at
@@ -176,9 +176,8 @@ pub(crate) fn assert_byte_lengths(
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     output_len: usize,
 ) {
-    let pointwise = (shape.kernel_height, shape.kernel_width, shape.stride) == (1, 1, 1);
-    assert!(pointwise && shape.padding_height == 0 && shape.padding_width == 0);
-    assert!((1..=MAX_BYTE_CHANNELS).contains(&shape.in_channels));
+    assert!(shape.in_channels >= 1);
+    assert!(shape.kernel_height * shape.kernel_width * shape.in_channels <= MAX_BYTE_TERMS);
     assert_eq!(input.bytes.len(), shape.input_len());
     assert_eq!(weight.len(), shape.int8_weight_len());
     assert_eq!(weight_scales.len(), shape.out_channels);
@@ -232,6 +231,17 @@ pub(crate) fn conv_int8_pixels(
             channels.clone(),
         );
     }
+}
+
+/// [`Kernels::conv_int8_bytes`] on the reference kernel (lengths unchecked).
+pub(crate) fn conv_int8_bytes(
+    shape: &ConvShape,
+    input: &ByteRows<'_>,
+    parameters: (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    conv_int8_map(shape, input, parameters, output, accumulate);
 }
 
 /// The whole int8 convolution, every output pixel and channel: the reference kernel.
@@ -337,7 +347,7 @@ impl CodeSums for ByteRows<'_> {
         block: usize,
         width: usize,
     ) -> [i32; INT8_BLOCK] {
-        // One plane, read as the digit planes are: at most MAX_BYTE_CHANNELS products of
+        // One plane, read as the digit planes are: at most MAX_BYTE_TERMS products of
         // 255 x 128, exact in i32.
         digit_sums(shape, self.bytes, weight, (row, tap), block, width)
     }
@@ -566,7 +576,11 @@ impl Kernels for Scalar {
         accumulate: Accumulate,
     ) {
         assert_byte_lengths(shape, input, (weight, weight_scales, bias), output.len());
-        let parameters = (weight, weight_scales, bias);
-        conv_int8_map(shape, input, parameters, output, accumulate);
+        conv_int8_bytes(shape, input, (weight, weight_scales, bias), output, accumulate);
+    }
+
+    /// The reference reads whole bytes.
+    fn narrow_form(&self) -> NarrowForm {
+        NarrowForm::Bytes
     }
 }

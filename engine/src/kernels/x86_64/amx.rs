@@ -326,7 +326,11 @@ impl Kernels for Amx {
         accumulate: Accumulate,
     ) {
         let parameters = (weight, weight_scales, bias);
-        if !self.conv_int8_bytes_on_tiles(shape, input, parameters, output, accumulate) {
+        // The tiles take the stem's pointwise patches; other byte convolutions (which this
+        // backend's narrow codes, digit planes, never are) go to VNNI.
+        if !(shape.is_pointwise()
+            && self.conv_int8_bytes_on_tiles(shape, input, parameters, output, accumulate))
+        {
             self.avx512.conv_int8_bytes(
                 shape,
                 input,
@@ -423,6 +427,15 @@ impl Kernels for Amx {
 
     fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
         self.avx512.quantize_codes(input, row_len, codes)
+    }
+
+    fn quantize_narrow(
+        &self,
+        input: &[f32],
+        scratch: &mut [i8],
+        form: crate::kernels::NarrowForm,
+    ) -> f32 {
+        self.avx512.quantize_narrow(input, scratch, form)
     }
 
     fn group_norm(

@@ -6,7 +6,7 @@ use super::avx2::Avx2;
 use super::{avx512_f32, elementwise, int8, sequence};
 use crate::kernels::ops::Activation;
 use crate::kernels::scalar::{assert_conv_lengths, assert_conv_pixel_lengths};
-use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels};
+use crate::kernels::{Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, NarrowForm};
 
 /// AVX-512 F/BW/VL + VNNI kernels (and AVX2 + FMA). Reachable only through
 /// [`Avx512::detect`], which checks the CPU.
@@ -79,6 +79,26 @@ impl Kernels for Avx512 {
         assert_conv_pixel_lengths(shape, (input, weight, bias), pixel, output.len());
         // SAFETY: as in `conv`, and the pixel is inside the output.
         unsafe { avx512_f32::conv_pixel(shape, (input, weight, bias), pixel, output) }
+    }
+
+    fn conv_int8_bytes(
+        &self,
+        shape: &ConvShape,
+        input: &ByteRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let parameters = (weight, weight_scales, bias);
+        // SAFETY: `self` exists only when AVX-512 F/BW/VL and VNNI were detected.
+        unsafe { int8::checked_conv_bytes(shape, input, parameters, output, accumulate) }
+    }
+
+    /// `vpdpbusd` multiplies whole bytes.
+    fn narrow_form(&self) -> NarrowForm {
+        NarrowForm::Bytes
     }
 
     shared_kernels!(avx512);

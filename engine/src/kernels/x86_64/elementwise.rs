@@ -19,6 +19,16 @@ macro_rules! backend {
                 ops::quantize_split_signs(input, high, low)
             }
 
+            /// [`ops::quantize_narrow`] on this backend's vectors.
+            #[target_feature(enable = $features)]
+            pub(crate) fn quantize_narrow(
+                input: &[f32],
+                scratch: &mut [i8],
+                form: crate::kernels::NarrowForm,
+            ) -> f32 {
+                ops::quantize_narrow(input, scratch, form)
+            }
+
             /// [`ops::quantize_rows_codes`] on this backend's vectors.
             #[target_feature(enable = $features)]
             pub(crate) fn quantize_codes(input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {

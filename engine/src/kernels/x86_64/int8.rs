@@ -41,13 +41,13 @@ mod matvec;
 mod tiles;
 
 use crate::kernels::scalar::{
-    assert_code_lengths, assert_int8_lengths, assert_int8_pixel_lengths, conv_int8_pixel,
-    conv_int8_pixels,
+    assert_byte_lengths, assert_code_lengths, assert_int8_lengths, assert_int8_pixel_lengths,
+    conv_int8_bytes, conv_int8_pixel, conv_int8_pixels,
 };
-use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows};
+use crate::kernels::{Accumulate, ByteRows, CodeRows, ConvShape, DigitRows};
 pub(crate) use lanes::{PairSumsYmm, VnniZmm, exact_digits_zmm, round_zmm};
 pub(crate) use matvec::matvec_codes;
-pub(crate) use tiles::{conv, conv_pixel, tiles_apply};
+pub(crate) use tiles::{byte_tiles_apply, conv, conv_pixel, tiles_apply};
 
 /// Pixels and channel vectors of a tile, per backend, both digit planes' sums held across
 /// the kernel: AVX2 has 16 YMM registers (8 sums, 4 weight vectors, the broadcast, the ones
@@ -166,6 +166,37 @@ backend!(
     super::VNNI_CODES_TILE,
     "avx512f,avx512bw,avx512vl,avx512vnni"
 );
+
+/// The tile of whole bytes on AVX-512 (one plane: 16 sums, 4 weight vectors, the
+/// broadcast).
+const VNNI_BYTES_TILE: (usize, usize) = (4, 4);
+
+/// [`conv`] on whole bytes with VNNI's `vpdpbusd` (exact for 0..=255; AVX2's `vpmaddubsw`
+/// is not, so it has no such wrapper), the lengths checked, shapes the tiles do not take
+/// on the scalar reference.
+///
+/// # Safety
+/// The CPU supports AVX-512 F/BW/VL and VNNI.
+#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vnni")]
+pub(crate) unsafe fn checked_conv_bytes(
+    shape: &ConvShape,
+    input: &ByteRows<'_>,
+    parameters: (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    assert_byte_lengths(shape, input, parameters, output.len());
+    if !byte_tiles_apply(shape) {
+        return conv_int8_bytes(shape, input, parameters, output, accumulate);
+    }
+    // SAFETY: the CPU runs VNNI (this function's contract); the lengths were asserted and
+    // the quads checked just above.
+    unsafe {
+        conv::<VnniZmm, ByteRows<'_>, { VNNI_BYTES_TILE.0 }, { VNNI_BYTES_TILE.1 }>(
+            shape, input, parameters, output, accumulate,
+        )
+    }
+}
 
 /// A backend's [`conv`] wrapper.
 pub(crate) type ConvKernel =

@@ -36,6 +36,9 @@ pub(crate) unsafe trait Int8Lanes {
     /// that i32 lanes cannot hold.
     type Exact: Copy;
     const WIDTH: usize;
+    /// Whether [`dot_quads`](Self::dot_quads) is exact for activations in 0..=255 (whole
+    /// bytes), not only 0..=127.
+    const WHOLE_BYTES: bool;
     unsafe fn zero_integers() -> Self::Integers;
     unsafe fn zero_floats() -> Self::Floats;
     unsafe fn zero_exact() -> Self::Exact;
@@ -108,6 +111,8 @@ unsafe impl Int8Lanes for PairSumsYmm {
     type Floats = __m256;
     type Exact = (__m256d, __m256d);
     const WIDTH: usize = 8;
+    // A pair of 255 x 127 products saturates `vpmaddubsw`'s i16 lane.
+    const WHOLE_BYTES: bool = false;
     #[inline(always)]
     unsafe fn zero_integers() -> __m256i {
         // SAFETY: the caller runs on AVX2 (trait contract).
@@ -239,6 +244,8 @@ unsafe impl Int8Lanes for VnniZmm {
     type Floats = __m512;
     type Exact = (__m512d, __m512d);
     const WIDTH: usize = 16;
+    // `vpdpbusd` adds its four u8 x i8 products into the i32 lane exactly.
+    const WHOLE_BYTES: bool = true;
     #[inline(always)]
     unsafe fn zero_integers() -> __m512i {
         // SAFETY: the caller runs on AVX-512F (trait contract).

@@ -6,8 +6,8 @@ use super::lanes::Int8Lanes;
 use crate::kernels::scalar::{CodeSums, conv_int8_pixel, conv_int8_pixels};
 use crate::kernels::x86_64::prefetch_lines_into_l2;
 use crate::kernels::{
-    Accumulate, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, MAX_DIGIT_CHANNELS, QUAD,
-    int8_quad_stride,
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, MAX_DIGIT_CHANNELS,
+    QUAD, int8_quad_stride,
 };
 
 /// Zero codes that a pixel whose kernel tap falls in the padding reads instead of an input
@@ -211,6 +211,74 @@ impl TileInput for DigitRows<'_> {
                 // SAFETY: the caller runs on `L`'s CPU.
                 totals[pixel][vector] = unsafe {
                     let exact = L::exact_digits(high[pixel][vector], low[pixel][vector]);
+                    L::round_scaled(exact, self.scale)
+                };
+            }
+        }
+        totals
+    }
+}
+
+/// Whether the SIMD tiles apply to a convolution on whole bytes: whole input-channel quads
+/// in each row, as for digits.
+pub(crate) fn byte_tiles_apply(shape: &ConvShape) -> bool {
+    shape.in_channels.is_multiple_of(QUAD)
+}
+
+impl TileInput for ByteRows<'_> {
+    /// One plane of whole bytes summed over the whole kernel in i32 (exact:
+    /// [`MAX_BYTE_TERMS`](crate::kernels::MAX_BYTE_TERMS)): half the products of two digit
+    /// planes, on lanes whose byte products take 0..=255.
+    #[inline(always)]
+    unsafe fn tile_totals<L: Int8Lanes, const P: usize, const V: usize>(
+        &self,
+        shape: &ConvShape,
+        weight: &[i8],
+        pixels: &PixelTile<P>,
+        channel: usize,
+    ) -> [[L::Floats; V]; P] {
+        const { assert!(L::WHOLE_BYTES) };
+        let in_channels = shape.in_channels;
+        let quads = in_channels / QUAD;
+        let quad_stride = int8_quad_stride(shape.out_channels, channel);
+        let bytes: &[i8] = bytemuck::cast_slice(self.bytes);
+        // SAFETY: the caller runs on `L`'s CPU.
+        let mut sums = [[unsafe { L::zero_integers() }; V]; P];
+        for kernel_y in 0..shape.kernel_height {
+            for kernel_x in 0..shape.kernel_width {
+                let rows = pixels.rows(shape, kernel_y, kernel_x);
+                let Some(sources) = tap_sources(rows, bytes, in_channels) else {
+                    continue;
+                };
+                let tap = kernel_y * shape.kernel_width + kernel_x;
+                let weights = weight[shape.int8_index(tap, 0, channel)..].as_ptr();
+                // SAFETY: every source is an input row of `quads` whole quads
+                // (`byte_tiles_apply`) or the zero row, as long; the tap's quads of the
+                // block's channels are inside `weight` (the caller's promise).
+                unsafe {
+                    for quad in 0..quads {
+                        let row = weights.add(quad * quad_stride);
+                        let vectors: [L::Integers; V] = core::array::from_fn(|vector| {
+                            L::load_weights(row.add(vector * L::WIDTH * QUAD))
+                        });
+                        for pixel in 0..P {
+                            let broadcast = L::broadcast_quad(sources[pixel].add(quad * QUAD));
+                            for vector in 0..V {
+                                sums[pixel][vector] =
+                                    L::dot_quads(sums[pixel][vector], broadcast, vectors[vector]);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        // SAFETY: the caller runs on `L`'s CPU.
+        let mut totals = [[unsafe { L::zero_floats() }; V]; P];
+        for pixel in 0..P {
+            for vector in 0..V {
+                // SAFETY: the caller runs on `L`'s CPU; i32 sums are exact in f64.
+                totals[pixel][vector] = unsafe {
+                    let exact = L::add_exact(L::zero_exact(), sums[pixel][vector]);
                     L::round_scaled(exact, self.scale)
                 };
             }
