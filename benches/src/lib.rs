@@ -5,7 +5,7 @@ pub mod macs;
 pub mod peak;
 
 use scdp_engine::{ArenaPlan, Camera, ModelConfig};
-use scdp_tests::{Fixture, synthetic_weights_file_as, tests_dir};
+use scdp_tests::{Fixture, synthetic_narrow_weights_file, synthetic_weights_file_as, tests_dir};
 use weights_tool::Quant;
 use weights_tool::writer::AlignedBytes;
 
@@ -29,6 +29,22 @@ impl Setup {
 
     /// [`Setup::new`] with weights stored at precision `quant`.
     pub fn new_as(name: &'static str, quant: Quant) -> Self {
+        Self::with_weights(name, |config, seed| {
+            synthetic_weights_file_as(config, seed, quant).expect("weights")
+        })
+    }
+
+    /// [`Setup::new`] with int8 weights whose residual blocks read narrow (8-bit) codes.
+    pub fn new_narrow(name: &'static str) -> Self {
+        Self::with_weights(name, |config, seed| {
+            synthetic_narrow_weights_file(config, seed).expect("weights")
+        })
+    }
+
+    fn with_weights(
+        name: &'static str,
+        weights: impl FnOnce(&ModelConfig, u64) -> AlignedBytes,
+    ) -> Self {
         let fixture =
             Fixture::load(&tests_dir().join(format!("fixtures/golden/{name}/basic.safetensors")))
                 .expect("golden fixture");
@@ -36,7 +52,7 @@ impl Setup {
         Setup {
             name,
             config,
-            weights: synthetic_weights_file_as(&config, fixture.seed, quant).expect("weights"),
+            weights: weights(&config, fixture.seed),
             arena: AlignedBytes::zeroed(ArenaPlan::new(&config).arena_bytes),
             camera: fixture.camera().expect("camera"),
             images: fixture.images.clone(),

@@ -132,11 +132,23 @@ pub fn convolve_codes(
     accumulate: Accumulate,
 ) {
     match codes {
-        TrunkCodes::Digits(digits) => {
-            kernels.conv_int8(shape, digits, weight, weight_scales, bias, output, accumulate)
-        }
-        TrunkCodes::Bytes(bytes) => {
-            kernels.conv_int8_bytes(shape, bytes, weight, weight_scales, bias, output, accumulate)
-        }
+        TrunkCodes::Digits(digits) => kernels.conv_int8(
+            shape,
+            digits,
+            weight,
+            weight_scales,
+            bias,
+            output,
+            accumulate,
+        ),
+        TrunkCodes::Bytes(bytes) => kernels.conv_int8_bytes(
+            shape,
+            bytes,
+            weight,
+            weight_scales,
+            bias,
+            output,
+            accumulate,
+        ),
     }
 }

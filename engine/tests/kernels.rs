@@ -1517,7 +1517,13 @@ fn narrow_byte_convolution_is_bit_identical_on_every_backend() {
         }
         // The model's path: quantize in the backend's form, then convolve.
         let values: Vec<f32> = (0..shape.input_len())
-            .map(|i| if i % 7 == 0 { 0.0 } else { rng.next().abs() * 3.0 })
+            .map(|i| {
+                if i % 7 == 0 {
+                    0.0
+                } else {
+                    rng.next().abs() * 3.0
+                }
+            })
             .collect();
         let convolve = |kernels: &dyn Kernels| {
             let mut scratch = vec![0i8; 2 * values.len()];
@@ -1569,7 +1575,13 @@ fn backends_read_narrow_codes_in_their_fastest_form() {
 fn narrow_quantization_round_trips_within_half_a_step() {
     let mut rng = Lcg(97);
     let input: Vec<f32> = (0..1001)
-        .map(|i| if i % 9 == 0 { 0.0 } else { rng.next().abs() * 4.0 })
+        .map(|i| {
+            if i % 9 == 0 {
+                0.0
+            } else {
+                rng.next().abs() * 4.0
+            }
+        })
         .collect();
     let mut bytes = vec![0u8; input.len()];
     let scale = ops::quantize_bytes(&input, &mut bytes);
@@ -1584,7 +1596,10 @@ fn narrow_quantization_round_trips_within_half_a_step() {
         assert!(x != 0.0 || code == 0, "{x} -> {code}");
     }
     let (mut high, mut low) = (vec![0i8; input.len()], vec![0i8; input.len()]);
-    assert_eq!(ops::quantize_bytes_split(&input, &mut high, &mut low), scale);
+    assert_eq!(
+        ops::quantize_bytes_split(&input, &mut high, &mut low),
+        scale
+    );
     for ((&h, &l), &code) in high.iter().zip(&low).zip(&bytes) {
         assert!((0..=1).contains(&h) && (0..=127).contains(&l));
         assert_eq!(h as i32 * 128 + l as i32, code as i32);
@@ -1595,7 +1610,11 @@ fn narrow_quantization_round_trips_within_half_a_step() {
             let mut expected = vec![0i8; 2 * input.len()];
             let found_scale = kernels.quantize_narrow(&input, &mut found, form);
             let expected_scale = ops::quantize_narrow(&input, &mut expected, form);
-            assert_eq!(found_scale.to_bits(), expected_scale.to_bits(), "{name} {form:?}");
+            assert_eq!(
+                found_scale.to_bits(),
+                expected_scale.to_bits(),
+                "{name} {form:?}"
+            );
             assert_eq!(found, expected, "{name} {form:?}");
         }
     }

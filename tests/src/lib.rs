@@ -167,6 +167,23 @@ pub fn synthetic_weights_file_as(
     Ok(weights_tool::writer::aligned_copy(&bytes))
 }
 
+/// [`synthetic_weights_file_as`] int8 (rounded to nearest) with every residual-block layer
+/// on narrow (8-bit) activation codes: the fast file's speed, whatever its rounding.
+pub fn synthetic_narrow_weights_file(config: &ModelConfig, seed: u64) -> Result<AlignedBytes> {
+    use weights_tool::lowering::{self, Rounding};
+    let state = weights_tool::synth::synth_state_dict(config, seed);
+    let lowered = lowering::lower(config, &state)?;
+    let mut stored = lowering::store(
+        config,
+        lowered,
+        weights_tool::Quant::Int8,
+        Rounding::Nearest,
+    )?;
+    weights_tool::activations::set_all_narrow(config, &mut stored)?;
+    let bytes = weights_tool::writer::write_weights_file(config, &stored)?;
+    Ok(weights_tool::writer::aligned_copy(&bytes))
+}
+
 /// Synthetic scenes the int8 fidelity is calibrated on (docs/QUANTIZATION.md: 8 were not
 /// enough, 32 met the floor).
 pub const CALIBRATION_SCENES: usize = 32;

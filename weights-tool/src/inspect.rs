@@ -12,6 +12,24 @@ fn mebibytes(bytes: usize) -> String {
     format!("{:.2} MiB", bytes as f64 / (1024.0 * 1024.0))
 }
 
+/// The names of the tensors of a weights file stored as `dtype`, in file order.
+pub fn int8_tensors_of(bytes: &[u8], dtype: DType) -> Result<Vec<String>> {
+    let aligned = crate::writer::aligned_copy(bytes);
+    let model =
+        Model::from_bytes(aligned.as_slice()).map_err(|error| anyhow::anyhow!("{error}"))?;
+    let file = model.file();
+    let mut names = Vec::new();
+    for index in 0..file.tensor_count() {
+        let entry = file
+            .entry(index)
+            .map_err(|error| anyhow::anyhow!("{error}"))?;
+        if entry.dtype == dtype {
+            names.push(entry.name.to_owned());
+        }
+    }
+    Ok(names)
+}
+
 /// A one-screen report: config, storage, arena plan, then the tensor table.
 pub fn report(bytes: &[u8]) -> Result<String> {
     let aligned = crate::writer::aligned_copy(bytes);
@@ -64,7 +82,10 @@ pub fn report(bytes: &[u8]) -> Result<String> {
             count(DType::I8),
             count(DType::I8Narrow)
         )?;
-        for entry in entries.iter().filter(|entry| entry.dtype == DType::I8Narrow) {
+        for entry in entries
+            .iter()
+            .filter(|entry| entry.dtype == DType::I8Narrow)
+        {
             writeln!(out, "  8-bit  {}", entry.name)?;
         }
         writeln!(out)?;

@@ -4,6 +4,7 @@
 //! [`remap::remap_keys`] -> [`keys::check_keys`] against [`keys::expected_keys`] ->
 //! [`lowering::lower_to_weights_file`].
 
+pub mod activations;
 pub mod calibrate;
 pub mod checkpoint;
 pub mod config;

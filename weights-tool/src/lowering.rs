@@ -752,8 +752,12 @@ pub fn store_keeping(
                     ChannelAxis::Last
                 };
                 let mut quantized = quantize_per_channel(&values, channels, axis);
-                if let (Rounding::Calibrated(moments), Stored::Int8 { values: q, scales, .. }) =
-                    (rounding, &mut quantized)
+                if let (
+                    Rounding::Calibrated(moments),
+                    Stored::Int8 {
+                        values: q, scales, ..
+                    },
+                ) = (rounding, &mut quantized)
                     && let Some(moment) = moments.get(&name)
                 {
                     *q = crate::gptq::quantize(&values, scales, axis, moment, GPTQ_DAMPING)

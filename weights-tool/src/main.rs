@@ -106,9 +106,43 @@ struct ConvertArgs {
     /// Run file whose `camera_k` and `camera_t` the synthetic scenes are seen through.
     #[arg(long, value_name = "RUN.safetensors")]
     camera: Option<PathBuf>,
+    /// With `--quant int8`: how weights are rounded. `gptq` needs calibration scenes;
+    /// `nearest` is only for comparisons (it misses the fidelity floor, docs/QUANTIZATION.md).
+    #[arg(long, value_enum, default_value_t = RoundingArg::Gptq)]
+    rounding: RoundingArg,
+    /// With `--quant int8`: the codes the residual blocks' layers quantize their input to.
+    /// `measured`: 8-bit where the calibration scenes' actions stay within
+    /// `--action-budget` of the f32 model's, 15-bit elsewhere; `wide`: 15-bit everywhere
+    /// (the precise scheme); `narrow`: 8-bit everywhere they can be.
+    #[arg(long, value_enum, default_value_t = ActivationsArg::Measured)]
+    activations: ActivationsArg,
+    /// With `--activations measured`: the largest difference from the f32 model's predicted
+    /// actions on the calibration scenes, in normalized action units (the mean may reach a
+    /// quarter of it).
+    #[arg(long, value_name = "MAX", default_value_t = weights_tool::activations::Budget::DEFAULT.max)]
+    action_budget: f64,
     /// Output weights file.
     #[arg(short, long, value_name = "MODEL.scdp")]
     output: PathBuf,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum RoundingArg {
+    /// GPTQ, calibrated on the scenes: each weight rounded so the layer's output error on
+    /// inputs like them is small.
+    Gptq,
+    /// Each weight to the nearest step, no calibration.
+    Nearest,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum ActivationsArg {
+    /// 8-bit codes where the actions stay within the budget, measured layer by layer.
+    Measured,
+    /// 15-bit codes everywhere.
+    Wide,
+    /// 8-bit codes in every residual-block layer.
+    Narrow,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -195,19 +229,129 @@ fn calibration_scenes(
     Ok(scenes)
 }
 
-/// int8 with GPTQ rounding calibrated on `scenes`.
-fn calibrated_weights_file(
+/// What `--quant int8` needs before anything is computed: calibration scenes, unless
+/// round-to-nearest was asked for by name.
+const INT8_NEEDS_SCENES: &str = "--quant int8 rounds with GPTQ and measures the activation widths on calibration scenes: pass --calibrate RUN.safetensors... (observations recorded on the robot) and/or --synthetic-scenes N --camera RUN.safetensors, or --rounding nearest for an uncalibrated file (it misses the fidelity floor, docs/QUANTIZATION.md)";
+
+/// An int8 weights file: rounded as asked, its activation widths as asked (measured on
+/// `scenes` by default); returns the file and the width report when measured.
+fn int8_weights_file(
+    args: &ConvertArgs,
     config: &scdp_engine::ModelConfig,
     state_dict: &weights_tool::StateDict,
     scenes: &[weights_tool::run::RunInputs],
-) -> anyhow::Result<Vec<u8>> {
+) -> anyhow::Result<(Vec<u8>, Option<weights_tool::activations::WidthReport>)> {
+    use weights_tool::activations::{self, Budget};
     use weights_tool::lowering::{self, Rounding};
+    use weights_tool::writer::write_weights_file;
+    anyhow::ensure!(
+        !scenes.is_empty() || args.rounding == RoundingArg::Nearest,
+        INT8_NEEDS_SCENES
+    );
+    anyhow::ensure!(
+        args.action_budget.is_finite() && args.action_budget > 0.0,
+        "--action-budget must be a positive number"
+    );
     let lowered = lowering::lower(config, state_dict)?;
-    let moments = lowering::calibrate(config, &lowered, scenes, true)?;
-    let spinner = spinner("rounding with GPTQ");
-    let stored = lowering::store(config, lowered, Quant::Int8, Rounding::Calibrated(&moments));
+    let f32_stored = lowering::store(config, lowered.clone(), Quant::F32, Rounding::Nearest)?;
+    let f32_file = write_weights_file(config, &f32_stored)?;
+    let moments = match args.rounding {
+        RoundingArg::Gptq => Some(weights_tool::calibrate::input_moments(
+            &f32_file,
+            &lowering::int8_tensors(config)?,
+            scenes,
+            true,
+        )?),
+        RoundingArg::Nearest => None,
+    };
+    let rounding = moments
+        .as_ref()
+        .map_or(Rounding::Nearest, Rounding::Calibrated);
+    let spinner = spinner("rounding");
+    let mut stored = lowering::store(config, lowered, Quant::Int8, rounding)?;
     spinner.finish_and_clear();
-    weights_tool::writer::write_weights_file(config, &stored?)
+    let report = match args.activations {
+        ActivationsArg::Wide => None,
+        ActivationsArg::Measured if scenes.is_empty() => None,
+        ActivationsArg::Narrow => {
+            activations::set_all_narrow(config, &mut stored)?;
+            None
+        }
+        ActivationsArg::Measured => {
+            let bar = ProgressBar::new(0).with_style(
+                ProgressStyle::with_template("measuring activation widths [{bar:30}] {pos}/{len}")
+                    .expect("valid template")
+                    .progress_chars("=> "),
+            );
+            let budget = Budget::with_max(args.action_budget);
+            let report = activations::choose(
+                config,
+                &mut stored,
+                &f32_file,
+                scenes,
+                budget,
+                |done, total| {
+                    bar.set_length(total as u64);
+                    bar.set_position(done as u64);
+                },
+            )?;
+            bar.finish_and_clear();
+            Some(report)
+        }
+    };
+    Ok((write_weights_file(config, &stored)?, report))
+}
+
+/// `convert`'s lines about an int8 file's activation codes.
+fn print_activations(
+    args: &ConvertArgs,
+    bytes: &[u8],
+    report: Option<&weights_tool::activations::WidthReport>,
+) {
+    use scdp_engine::format::DType;
+    let narrow = weights_tool::inspect::int8_tensors_of(bytes, DType::I8Narrow);
+    let wide = weights_tool::inspect::int8_tensors_of(bytes, DType::I8);
+    let (narrow, wide) = (narrow.unwrap_or_default(), wide.unwrap_or_default());
+    let Some(report) = report else {
+        let why = match args.activations {
+            ActivationsArg::Narrow => "8-bit in every residual-block layer (--activations narrow)",
+            ActivationsArg::Wide => "15-bit everywhere (--activations wide)",
+            ActivationsArg::Measured => "15-bit everywhere (no calibration scenes to measure on)",
+        };
+        println!(
+            "  activations    {why}: {} layers 8-bit, {} 15-bit",
+            narrow.len(),
+            wide.len()
+        );
+        return;
+    };
+    println!(
+        "  activations    measured on {} calibration scenes against the f32 model (normalized actions; budget max {:.2e}, mean {:.2e})",
+        report.scenes, report.budget.max, report.budget.mean
+    );
+    println!("                 15-bit everywhere: {}", report.wide);
+    let chosen = report
+        .layers
+        .iter()
+        .filter(|layer| layer.codes == scdp_engine::weights::ActivationCodes::Narrow)
+        .count();
+    println!(
+        "                 chosen, {chosen} of {} residual-block layers 8-bit: {}",
+        report.layers.len(),
+        report.chosen
+    );
+    for layer in &report.layers {
+        let (codes, why) = match layer.codes {
+            scdp_engine::weights::ActivationCodes::Narrow => ("8-bit ", "within the budget"),
+            scdp_engine::weights::ActivationCodes::Wide => {
+                ("15-bit", "over the budget with the 8-bit layers before it")
+            }
+        };
+        println!(
+            "  {codes}         {:<40} alone: {}; {why}",
+            layer.name, layer.alone
+        );
+    }
 }
 
 fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
@@ -228,20 +372,23 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
             args.config.display()
         )
     })?;
-
     let quant = Quant::from(args.quant);
     let scenes = calibration_scenes(args, &config)?;
     anyhow::ensure!(
         scenes.is_empty() || quant == Quant::Int8,
         "calibration scenes only apply to --quant int8"
     );
-    let bytes = if scenes.is_empty() {
-        let spinner = spinner(&format!("converting to {quant}"));
-        let bytes = weights_tool::lowering::lower_to_weights_file(&config, &state_dict, quant);
-        spinner.finish_and_clear();
-        bytes
-    } else {
-        calibrated_weights_file(&config, &state_dict, &scenes)
+    let (bytes, report) = match quant {
+        Quant::F32 => {
+            let spinner = spinner("converting to f32");
+            let bytes = weights_tool::lowering::lower_to_weights_file(&config, &state_dict, quant);
+            spinner.finish_and_clear();
+            (bytes, None)
+        }
+        Quant::Int8 => match int8_weights_file(args, &config, &state_dict, &scenes) {
+            Ok((bytes, report)) => (Ok(bytes), report),
+            Err(error) => (Err(error), None),
+        },
     };
     let bytes = bytes.with_context(|| format!("converting {}", args.checkpoint.display()))?;
     std::fs::write(&args.output, &bytes)
@@ -252,21 +399,21 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
     println!("  storage        {quant}");
     if quant == Quant::Int8 {
         println!(
-            "  int8 scheme    convolutions: int8 weights x 15-bit activations (one scale per layer input; two int8 digits in the trunk, i16 in the U-Net); FiLM: int8 weights x 15-bit activations (i16)"
+            "  int8 scheme    convolutions: int8 weights x 15-bit activations (one scale per layer input; two int8 digits in the trunk, i16 in the U-Net), or x 8-bit activations where chosen below; FiLM: int8 weights x 15-bit activations (i16)"
         );
-        if scenes.is_empty() {
-            println!(
-                "  rounding       to nearest (no calibration scenes: the fidelity floor of docs/QUANTIZATION.md needs GPTQ, --calibrate or --synthetic-scenes)"
-            );
-        } else {
-            println!(
+        match args.rounding {
+            RoundingArg::Nearest => println!(
+                "  rounding       to nearest (--rounding nearest: the fidelity floor of docs/QUANTIZATION.md needs GPTQ)"
+            ),
+            RoundingArg::Gptq => println!(
                 "  rounding       GPTQ, calibrated on {} scenes ({} recorded, {} synthetic), damping {}",
                 scenes.len(),
                 args.calibrate.len(),
                 args.synthetic_scenes,
                 weights_tool::lowering::GPTQ_DAMPING
-            );
+            ),
         }
+        print_activations(args, &bytes, report.as_ref());
         for (name, why) in weights_tool::lowering::int8_kept_f32(&config) {
             println!("  kept f32       {name}: {why}");
         }

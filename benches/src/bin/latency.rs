@@ -4,7 +4,9 @@
 //! medians stay meaningful where the absolute figures drift.
 //!
 //! `cargo run --release -p scdp-benches --bin latency -- CONFIG [f32|int8] [REPETITIONS]`
-//! (CONFIG: `metaworld`, `panda` or `tiny`). Per backend, medians in ms of:
+//! (CONFIG: `metaworld`, `panda` or `tiny`). With `int8`, two files take turns: every layer
+//! on 15-bit activation codes (the precise scheme) and every residual-block layer on 8-bit
+//! codes (the fast file). Per backend and file, medians in ms of:
 //! - `encode`: one frame (`push_observation`);
 //! - `denoise`: the 10-step loop with every on-demand projection cell already cached;
 //! - `streaming`: the newest frame, then the loop (older frames encoded on arrival; cells
@@ -36,7 +38,17 @@ fn main() {
     };
     let repetitions: usize = arguments.get(2).and_then(|r| r.parse().ok()).unwrap_or(15);
     let setup = Setup::new_as(name, quant);
-    let model = Model::from_bytes(setup.weights.as_slice()).expect("model");
+    let narrow = (quant == Quant::Int8).then(|| Setup::new_narrow(name));
+    let mut models = vec![(
+        if quant == Quant::Int8 { " 15-bit" } else { "" },
+        Model::from_bytes(setup.weights.as_slice()).expect("model"),
+    )];
+    if let Some(narrow) = &narrow {
+        models.push((
+            " 8-bit",
+            Model::from_bytes(narrow.weights.as_slice()).expect("model"),
+        ));
+    }
     let frames = setup.config.n_obs_steps as usize;
     let backends: Vec<Backend> = [
         Backend::Scalar,
@@ -50,25 +62,33 @@ fn main() {
     .filter(|&backend| backend != Backend::Scalar || name == "tiny")
     .collect();
     let plan = ArenaPlan::new(&setup.config);
-    let mut arenas: Vec<AlignedBytes> = backends
+    let runs: Vec<(&str, &Model, Backend)> = backends
+        .iter()
+        .flat_map(|&backend| {
+            models
+                .iter()
+                .map(move |(label, model)| (*label, model, backend))
+        })
+        .collect();
+    let mut arenas: Vec<AlignedBytes> = runs
         .iter()
         .map(|_| AlignedBytes::zeroed(plan.arena_bytes))
         .collect();
-    let mut policies: Vec<Policy> = arenas
+    let mut policies: Vec<(&str, Policy)> = arenas
         .iter_mut()
-        .zip(&backends)
-        .map(|(arena, &backend)| {
+        .zip(&runs)
+        .map(|(arena, &(label, model, backend))| {
             let mut policy =
-                Policy::with_backend(&model, arena.as_mut_slice(), backend).expect("backend");
+                Policy::with_backend(model, arena.as_mut_slice(), backend).expect("backend");
             policy.set_camera(setup.camera);
-            policy
+            (label, policy)
         })
         .collect();
-    // Per backend: encode, denoise, streaming, end to end.
-    let mut times = vec![[vec![], vec![], vec![], vec![]]; backends.len()];
+    // Per run: encode, denoise, streaming, end to end.
+    let mut times = vec![[vec![], vec![], vec![], vec![]]; runs.len()];
     let milliseconds = |start: Instant| start.elapsed().as_secs_f64() * 1e3;
     for repetition in 0..=repetitions {
-        for (policy, times) in policies.iter_mut().zip(&mut times) {
+        for ((_, policy), times) in policies.iter_mut().zip(&mut times) {
             policy.reset();
             let start = Instant::now();
             for frame in 0..frames {
@@ -105,10 +125,10 @@ fn main() {
     );
     println!("| kernels | encode | denoise | streaming | end to end |");
     println!("|---|---:|---:|---:|---:|");
-    for (policy, times) in policies.iter().zip(&mut times) {
+    for ((label, policy), times) in policies.iter().zip(&mut times) {
         let [encode, denoise, streaming, end_to_end] = times.each_mut().map(|s| median(s));
         println!(
-            "| {} | {encode:.2} | {denoise:.2} | {streaming:.2} | {end_to_end:.2} |",
+            "| {}{label} | {encode:.2} | {denoise:.2} | {streaming:.2} | {end_to_end:.2} |",
             policy.kernels_name()
         );
     }

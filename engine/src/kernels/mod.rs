@@ -504,7 +504,11 @@ impl QuantizeScratch<'_> {
     /// [`ops::quantize_split_signs`]) and returns the view.
     pub fn quantize(&mut self, kernels: &dyn Kernels, input: &[f32]) -> DigitRows<'_> {
         let quantized = self.quantize_wide(kernels, input);
-        DigitRows::from_planes(&self.values[..2 * input.len()], quantized.scale, quantized.nonnegative)
+        DigitRows::from_planes(
+            &self.values[..2 * input.len()],
+            quantized.scale,
+            quantized.nonnegative,
+        )
     }
 
     /// [`quantize`](Self::quantize), returning what [`view`](Self::view) needs.

@@ -2,8 +2,8 @@
 //! implementations are tested against it.
 
 use super::{
-    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, Kernels, NarrowForm,
-    MAX_BYTE_TERMS, MAX_DIGIT_CHANNELS, MAX_DIGIT_TERMS, QUAD, ops,
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, Kernels,
+    MAX_BYTE_TERMS, MAX_DIGIT_CHANNELS, MAX_DIGIT_TERMS, NarrowForm, QUAD, ops,
 };
 
 /// Output channels accumulated at once in the int8 kernels (an i32 block on the stack): at
@@ -576,7 +576,13 @@ impl Kernels for Scalar {
         accumulate: Accumulate,
     ) {
         assert_byte_lengths(shape, input, (weight, weight_scales, bias), output.len());
-        conv_int8_bytes(shape, input, (weight, weight_scales, bias), output, accumulate);
+        conv_int8_bytes(
+            shape,
+            input,
+            (weight, weight_scales, bias),
+            output,
+            accumulate,
+        );
     }
 
     /// The reference reads whole bytes.

@@ -85,7 +85,12 @@ macro_rules! shared_kernels {
             unsafe { elementwise::$backend::quantize_codes(input, row_len, codes) }
         }
 
-        fn quantize_narrow(&self, input: &[f32], scratch: &mut [i8], form: crate::kernels::NarrowForm) -> f32 {
+        fn quantize_narrow(
+            &self,
+            input: &[f32],
+            scratch: &mut [i8],
+            form: crate::kernels::NarrowForm,
+        ) -> f32 {
             // SAFETY: `self` exists only on a CPU with the backend's features.
             unsafe { elementwise::$backend::quantize_narrow(input, scratch, form) }
         }
