@@ -15,7 +15,8 @@ Models are the PyTorch reference of `tests/reference/` (imported, not copied), b
 - ONNX Runtime: the trunk + projections exported as one graph (both frames as a batch) and one
   U-Net evaluation as another; anchors, bilinear pooling and DDIM in NumPy around ORT.
   Its result is checked against the PyTorch reference before timing.
-- Engine (`--engine`): `weights-tool synth` + `convert` (f32, and int8 with `--int8`) + `run
+- Engine (`--engine`): `weights-tool synth` + `convert` (f32, and with `--int8` the fast int8 file: 8-bit
+  activations in every residual-block layer, rounded to nearest) + `run
   --bench N` on the same fixture; its action_pred is checked against PyTorch too.
 
 Everything runs on one thread: torch.set_num_threads(1), ORT intra_op_num_threads = 1 and
@@ -281,7 +282,10 @@ def engine_bench(tool: list[str], name: str, folder: str, runs: int, quant: str)
     if not os.path.exists(ckpt):
         subprocess.run(tool + ["synth", "--config", config, "--seed", str(WEIGHT_SEED), "-o", ckpt], check=True,
                        capture_output=True)
-    subprocess.run(tool + ["convert", ckpt, "--config", config, "--quant", quant, "-o", model], check=True,
+    # The fast int8 file: 8-bit activations in every residual-block layer. Its rounding does
+    # not change its speed, so it is rounded to nearest (no calibration scenes needed).
+    int8 = ["--rounding", "nearest", "--activations", "narrow"] if quant == "int8" else []
+    subprocess.run(tool + ["convert", ckpt, "--config", config, "--quant", quant, *int8, "-o", model], check=True,
                    capture_output=True)
     text = subprocess.run(tool + ["run", model, "--inputs", fixture_path(name), "-o", out, "--bench", str(runs)],
                           check=True, capture_output=True, text=True).stdout

@@ -5,7 +5,10 @@
 
 use scdp_engine::rng::NoiseRng;
 use scdp_engine::{ArenaPlan, Backend, Camera, Model, ModelConfig, Noise, Policy};
-use scdp_tests::{available_backends, synthetic_weights_file, synthetic_weights_file_as};
+use scdp_tests::{
+    available_backends, synthetic_narrow_weights_file, synthetic_weights_file,
+    synthetic_weights_file_as,
+};
 use weights_tool::Quant;
 use weights_tool::writer::{AlignedBytes, aligned_copy};
 
@@ -193,6 +196,15 @@ fn seeded_noise_is_the_documented_generator() {
 /// `Backend::Scalar`.)
 fn two_instances_agree(config: ModelConfig, quant: Quant, backend: Backend) {
     let weights = synthetic_weights_file_as(&config, 5, quant).unwrap();
+    two_instances_agree_on(config, weights, &format!("{quant:?}"), backend);
+}
+
+fn two_instances_agree_on(
+    config: ModelConfig,
+    weights: AlignedBytes,
+    what: &str,
+    backend: Backend,
+) {
     let copy = aligned_copy(weights.as_slice());
     let model_a = Model::from_bytes(weights.as_slice()).unwrap();
     let model_b = Model::from_bytes(copy.as_slice()).unwrap();
@@ -208,7 +220,7 @@ fn two_instances_agree(config: ModelConfig, quant: Quant, backend: Backend) {
         // b infers something else first: nothing of it may leak into the next call.
         let _ = run(&mut b, &inputs, Noise::Seed(seed ^ 1));
         let second = run(&mut b, &inputs, Noise::Seed(seed));
-        assert_eq!(first, second, "{quant:?} {backend:?}, seed {seed}");
+        assert_eq!(first, second, "{what} {backend:?}, seed {seed}");
     }
 }
 
@@ -218,6 +230,15 @@ fn two_instances_give_identical_bits_tiny() {
         for backend in available_backends() {
             two_instances_agree(ModelConfig::TINY, quant, backend);
         }
+    }
+}
+
+/// The same for an int8 file whose residual blocks read narrow (8-bit) codes.
+#[test]
+fn two_instances_give_identical_bits_with_narrow_activations() {
+    for backend in available_backends() {
+        let weights = synthetic_narrow_weights_file(&ModelConfig::TINY, 5).unwrap();
+        two_instances_agree_on(ModelConfig::TINY, weights, "int8 narrow", backend);
     }
 }
 

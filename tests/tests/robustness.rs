@@ -1396,3 +1396,48 @@ fn int8_convolution_too_wide_for_exact_sums_is_an_unexpected_tensor() {
     let edited = rebuild_onto(file.as_slice(), &tensors);
     assert_eq!(load(&edited), Err(Error::UnexpectedTensor { index }));
 }
+
+/// Narrow (8-bit) activation codes are a residual-block layer's: a file that asks for them
+/// on a layer whose input can be negative (the U-Net) or that the engine quantizes once for
+/// several readers at a frame's level (the projections) is refused at that tensor's index;
+/// on a residual block's convolution it loads and runs.
+#[test]
+fn narrow_activation_codes_are_refused_where_the_engine_has_no_narrow_path() {
+    let file = synthetic_weights_file_as(&ModelConfig::TINY, 5, Quant::Int8).unwrap();
+    for name in [
+        "proj.0.weight",
+        "unet.down.0.0.conv0.weight",
+        "unet.mid.0.film.weight",
+    ] {
+        let mut tensors = tensors_of(file.as_slice());
+        let index = tensors.iter().position(|t| t.name == name).unwrap();
+        assert_eq!(tensors[index].dtype, DType::I8 as u32, "{name}");
+        tensors[index].dtype = DType::I8Narrow as u32;
+        let edited = rebuild_onto(file.as_slice(), &tensors);
+        assert_eq!(
+            load(&edited),
+            Err(Error::UnexpectedTensor { index }),
+            "{name}"
+        );
+    }
+    let mut tensors = tensors_of(file.as_slice());
+    let index = tensors
+        .iter()
+        .position(|t| t.name == "backbone.layer2.0.conv1.weight")
+        .unwrap();
+    tensors[index].dtype = DType::I8Narrow as u32;
+    let edited = aligned_copy(&rebuild_onto(file.as_slice(), &tensors));
+    let model = Model::from_bytes(edited.as_slice()).unwrap();
+    let config = ModelConfig::TINY;
+    let mut arena = AlignedBytes::zeroed(ArenaPlan::new(&config).arena_bytes);
+    let mut policy = Policy::new(&model, arena.as_mut_slice()).unwrap();
+    policy.set_camera(good_camera());
+    let pixels = (config.image_height * config.image_width) as usize;
+    let frame: Vec<u8> = (0..3 * pixels).map(|i| (i % 251) as u8).collect();
+    policy
+        .push_observation(&frame, &vec![0.1; config.state_dim as usize])
+        .unwrap();
+    let noise = vec![0.5; (config.horizon * config.action_dim) as usize];
+    let actions = policy.infer(Noise::Given(&noise)).unwrap();
+    assert!(actions.action_pred().iter().all(|a| a.is_finite()));
+}

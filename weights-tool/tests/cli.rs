@@ -386,8 +386,10 @@ fn bad_inputs_give_one_clear_error_line() {
 }
 
 /// `convert --quant int8` calibrated on recorded and synthetic scenes writes a weights file
-/// the engine loads, says how it rounded, and differs from round-to-nearest; calibration
-/// options that cannot apply are refused.
+/// the engine loads, says how it rounded and which activation codes each residual-block
+/// layer got, and differs from round-to-nearest, which is written only when asked for by
+/// name; without scenes `--quant int8` refuses and says what to pass; calibration options
+/// that cannot apply are refused.
 #[test]
 fn convert_calibrates_int8_rounding_on_scenes() {
     let dir = tempfile::tempdir().unwrap();
@@ -424,20 +426,69 @@ fn convert_calibrates_int8_rounding_on_scenes() {
     ];
     let output = convert(&[&int8[..], &scenes[..]].concat(), &calibrated);
     assert!(output.status.success(), "{}", text(&output.stderr));
+    let stdout = text(&output.stdout);
     assert!(
-        text(&output.stdout).contains("GPTQ, calibrated on 3 scenes (1 recorded, 2 synthetic)"),
-        "{}",
-        text(&output.stdout)
+        stdout.contains("GPTQ, calibrated on 3 scenes (1 recorded, 2 synthetic)"),
+        "{stdout}"
     );
+    assert!(
+        stdout.contains("activations    measured on 3 calibration scenes"),
+        "{stdout}"
+    );
+    // The tiny trunk's 19 residual-block layers, each with its measured effect and choice.
+    let decided = stdout
+        .lines()
+        .filter(|line| line.contains("alone: max") && line.contains("backbone.layer"))
+        .count();
+    assert_eq!(decided, 19, "{stdout}");
+
+    let refused = convert(&int8, &path("refused.scdp"));
+    assert!(!refused.status.success());
+    let stderr = text(&refused.stderr);
+    for hint in ["--calibrate", "--synthetic-scenes", "--rounding nearest"] {
+        assert!(stderr.contains(hint), "{hint}: {stderr}");
+    }
+    assert!(!dir.path().join("refused.scdp").exists());
+
     let nearest = path("rtn.scdp");
-    let output = convert(&int8, &nearest);
-    assert!(text(&output.stdout).contains("rounding       to nearest"));
+    let output = convert(&[&int8[..], &["--rounding", "nearest"]].concat(), &nearest);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    let stdout = text(&output.stdout);
+    assert!(stdout.contains("rounding       to nearest"), "{stdout}");
+    assert!(
+        stdout.contains("15-bit everywhere (no calibration scenes to measure on)"),
+        "{stdout}"
+    );
+    let wide = path("wide.scdp");
+    let wide_args = [&int8[..], &scenes[..], &["--activations", "wide"]].concat();
+    assert!(convert(&wide_args, &wide).status.success());
     let calibrated = std::fs::read(&calibrated).unwrap();
     let nearest = std::fs::read(&nearest).unwrap();
+    let wide = std::fs::read(&wide).unwrap();
     assert_eq!(calibrated.len(), nearest.len());
-    assert_ne!(calibrated, nearest, "GPTQ changed no weight");
+    assert_ne!(wide, nearest, "GPTQ changed no weight");
     let aligned = weights_tool::writer::aligned_copy(&calibrated);
     scdp_engine::Model::from_bytes(aligned.as_slice()).expect("calibrated file loads");
+
+    // `inspect` lists the layers on 8-bit codes: none in the wide file, all 19 with
+    // `--activations narrow`.
+    let narrow = path("narrow.scdp");
+    let narrow_args = [&int8[..], &scenes[..], &["--activations", "narrow"]].concat();
+    let output = convert(&narrow_args, &narrow);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    for (file, eight_bit) in [(path("wide.scdp"), 0), (narrow, 19)] {
+        let inspect = tool(&["inspect", &file]);
+        let report = text(&inspect.stdout);
+        assert!(
+            report.contains(&format!("{eight_bit} on 8-bit codes")),
+            "{file}: {report}"
+        );
+        let listed = report
+            .lines()
+            .filter(|line| line.starts_with("  8-bit"))
+            .count();
+        assert_eq!(listed, eight_bit, "{file}: {report}");
+    }
 
     let no_camera = convert(
         &["--quant", "int8", "--synthetic-scenes", "2"],
