@@ -2,7 +2,7 @@
 //! blocks' convolutions may read one byte a value instead of 15-bit codes (half the trunk's
 //! integer products, docs/QUANTIZATION.md). What that costs depends on the weights, so the
 //! tool measures it on the calibration scenes' actions, against the f32 model with the same
-//! noise, and keeps the 15-bit codes only where they are needed to stay within a budget.
+//! noise draws, and keeps the 15-bit codes only where they are needed to stay within a budget.
 
 use std::collections::BTreeMap;
 
@@ -13,33 +13,40 @@ use scdp_engine::weights::{ActivationCodes, NarrowCodes};
 use crate::run::{RunInputs, Runner};
 use crate::writer::{Stored, tensor_specs, write_weights_file};
 
-/// How far an int8 file's actions may move from the f32 model's on the calibration scenes,
-/// in normalized action units (each action dimension times the normalizer's scale, so 1
-/// is the training data's half range): the largest difference of any predicted action
-/// value, and the mean of all of them.
+/// How much the 8-bit codes may cost, measured on the calibration scenes' predicted
+/// actions against the f32 model's, in normalized action units (each action dimension times
+/// the normalizer's scale, so 1 is the training data's half range). The mean difference is
+/// the measure: the largest difference over a few hundred inferences is set by rare chunks
+/// that flip with any rounding (on the trained Meta-World policy the 15-bit file's own max
+/// over 256 inferences was 1.97e-2, and single layers' 1.6e-2 to 2.8e-2 in no order of their
+/// sensitivity), while the mean ranks the layers as the closed loop does.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Budget {
-    pub max: f64,
-    pub mean: f64,
+    /// The mean difference may exceed the 15-bit file's by this fraction of it.
+    pub mean_increase: f64,
+    /// And may not exceed this (the project's fidelity floor for the mean).
+    pub mean_cap: f64,
 }
 
 impl Budget {
-    /// The project's int8 fidelity floor (docs/QUANTIZATION.md): max 0.02, mean 0.005.
+    /// 5% more mean error than 15-bit codes everywhere, within the floor's mean of 0.005.
     pub const DEFAULT: Budget = Budget {
-        max: 0.02,
-        mean: 0.005,
+        mean_increase: 0.05,
+        mean_cap: 0.005,
     };
 
-    /// A budget of `max`, its mean in the floor's proportion (a quarter).
-    pub fn with_max(max: f64) -> Budget {
+    /// The default budget with another allowed increase.
+    pub fn with_increase(mean_increase: f64) -> Budget {
         Budget {
-            max,
-            mean: max * Budget::DEFAULT.mean / Budget::DEFAULT.max,
+            mean_increase,
+            ..Budget::DEFAULT
         }
     }
 
-    pub fn holds(&self, error: &ActionError) -> bool {
-        error.max <= self.max && error.mean <= self.mean
+    /// Whether `error` is within the budget of a file whose 15-bit codes everywhere give
+    /// `wide`.
+    pub fn holds(&self, error: &ActionError, wide: &ActionError) -> bool {
+        error.mean <= wide.mean * (1.0 + self.mean_increase) && error.mean <= self.mean_cap
     }
 }
 
@@ -76,7 +83,7 @@ pub struct WidthReport {
     pub wide: ActionError,
     /// The chosen mix.
     pub chosen: ActionError,
-    /// In the order they were tried: least costly alone first.
+    /// In the order they were tried: least mean error alone first.
     pub layers: Vec<LayerChoice>,
 }
 
@@ -112,15 +119,24 @@ pub fn set_all_narrow(
     Ok(names)
 }
 
-/// The predicted actions of a weights file on every scene, each with its own noise (the
-/// scene's, or the engine's generator seeded with the scene's index).
+/// Noise draws each calibration scene is denoised from. The errors that matter are rare:
+/// on the trained Meta-World policy, one chunk in a hundred of the closed loop's moved by
+/// more than the budget with 8-bit codes in the second stage, which 32 scenes with one draw
+/// each did not show and 8 draws each did (docs/QUANTIZATION.md).
+pub const NOISE_DRAWS: usize = 8;
+
+/// The predicted actions of a weights file on every scene, for [`NOISE_DRAWS`] noise seeds
+/// each (the same seeds for every file).
 fn actions(file: &[u8], scenes: &[RunInputs]) -> Result<Vec<Vec<f32>>> {
     let mut runner = Runner::new(file)?;
-    scenes
-        .iter()
-        .enumerate()
-        .map(|(index, scene)| Ok(runner.run(scene, index as u64)?.0.action_pred))
-        .collect()
+    let mut all = Vec::with_capacity(scenes.len() * NOISE_DRAWS);
+    for (index, scene) in scenes.iter().enumerate() {
+        let seeds: Vec<u64> = (0..NOISE_DRAWS)
+            .map(|draw| (index * NOISE_DRAWS + draw) as u64)
+            .collect();
+        all.extend(runner.action_preds(scene, &seeds)?);
+    }
+    Ok(all)
 }
 
 /// The error of `found` against `reference`, each value times its dimension's `scale`.
@@ -146,9 +162,10 @@ fn action_error(found: &[Vec<f32>], reference: &[Vec<f32>], scale: &[f32]) -> Ac
 }
 
 /// Chooses the activation codes of every candidate layer of `stored` (int8, all wide on
-/// entry) and sets them: the error of each layer narrow alone is measured, then layers are
-/// made narrow in the order of that error, each kept narrow only if the file with it and
-/// the ones kept before stays within `budget`. `f32_file` is the same model in f32, the
+/// entry) and sets them: the mean error of each layer narrow alone is measured, then layers
+/// are made narrow in the order of that error, each kept narrow only if the file with it
+/// and the ones kept before stays within `budget`; none if the file with 15-bit codes
+/// everywhere is already over its cap. `f32_file` is the same model in f32, the
 /// reference. `progress` is called after each measured file with (done, total).
 pub fn choose(
     config: &ModelConfig,
@@ -188,13 +205,15 @@ pub fn choose(
             codes: ActivationCodes::Wide,
         });
     }
-    layers.sort_by(|a, b| a.alone.max.total_cmp(&b.alone.max));
+    layers.sort_by(|a, b| a.alone.mean.total_cmp(&b.alone.mean));
     let mut chosen = wide;
-    for layer in &mut layers {
+    // Over the cap with 15-bit codes everywhere, the file stays wide.
+    let trials = if budget.holds(&wide, &wide) { &mut layers[..] } else { &mut [] };
+    for layer in trials {
         let one = std::slice::from_ref(&layer.name);
         set_codes(stored, one, ActivationCodes::Narrow);
         let error = measure(stored)?;
-        if budget.holds(&error) {
+        if budget.holds(&error, &wide) {
             layer.codes = ActivationCodes::Narrow;
             chosen = error;
         } else {
@@ -223,24 +242,20 @@ mod tests {
         assert_eq!(error.max, 20.0);
         assert_eq!(error.mean, 21.0 / 4.0);
         let nan = action_error(&[vec![f32::NAN]], &[vec![0.0]], &[1.0]);
-        assert!(!Budget::DEFAULT.holds(&nan));
+        let wide = ActionError { max: 0.0, mean: 1e-3 };
+        assert!(!Budget::DEFAULT.holds(&nan, &wide));
     }
 
     #[test]
-    fn a_budget_holds_on_both_figures() {
-        let budget = Budget::with_max(0.04);
-        assert_eq!(budget.mean, 0.01);
-        assert!(budget.holds(&ActionError {
-            max: 0.04,
-            mean: 0.01
-        }));
-        assert!(!budget.holds(&ActionError {
-            max: 0.041,
-            mean: 0.0
-        }));
-        assert!(!budget.holds(&ActionError {
-            max: 0.0,
-            mean: 0.011
-        }));
+    fn a_budget_bounds_the_mean_relative_to_wide_codes_and_caps_it() {
+        let budget = Budget::with_increase(0.25);
+        let wide = ActionError { max: 0.1, mean: 0.002 };
+        let at = |mean| ActionError { max: 1.0, mean };
+        assert!(budget.holds(&at(0.0025), &wide));
+        assert!(!budget.holds(&at(0.00251), &wide));
+        // The cap: a file whose 15-bit codes already reach 0.0045 may not pass 0.005.
+        let wide = ActionError { max: 0.1, mean: 0.0045 };
+        assert!(budget.holds(&at(0.005), &wide));
+        assert!(!budget.holds(&at(0.0051), &wide));
     }
 }

@@ -116,10 +116,11 @@ struct ConvertArgs {
     /// (the precise scheme); `narrow`: 8-bit everywhere they can be.
     #[arg(long, value_enum, default_value_t = ActivationsArg::Measured)]
     activations: ActivationsArg,
-    /// With `--activations measured`: the largest difference from the f32 model's predicted
-    /// actions on the calibration scenes, in normalized action units (the mean may reach a
-    /// quarter of it).
-    #[arg(long, value_name = "MAX", default_value_t = weights_tool::activations::Budget::DEFAULT.max)]
+    /// With `--activations measured`: how much the 8-bit codes may raise the mean difference
+    /// between the file's predicted actions and the f32 model's on the calibration scenes,
+    /// as a fraction of the 15-bit file's (0.05: by 5%); never past the fidelity floor's
+    /// mean, 0.005 normalized.
+    #[arg(long, value_name = "FRACTION", default_value_t = weights_tool::activations::Budget::DEFAULT.mean_increase)]
     action_budget: f64,
     /// Output weights file.
     #[arg(short, long, value_name = "MODEL.scdp")]
@@ -249,8 +250,8 @@ fn int8_weights_file(
         INT8_NEEDS_SCENES
     );
     anyhow::ensure!(
-        args.action_budget.is_finite() && args.action_budget > 0.0,
-        "--action-budget must be a positive number"
+        args.action_budget.is_finite() && args.action_budget >= 0.0,
+        "--action-budget must be a fraction, 0 or more"
     );
     let lowered = lowering::lower(config, state_dict)?;
     let f32_stored = lowering::store(config, lowered.clone(), Quant::F32, Rounding::Nearest)?;
@@ -283,7 +284,7 @@ fn int8_weights_file(
                     .expect("valid template")
                     .progress_chars("=> "),
             );
-            let budget = Budget::with_max(args.action_budget);
+            let budget = Budget::with_increase(args.action_budget);
             let report = activations::choose(
                 config,
                 &mut stored,
@@ -326,10 +327,19 @@ fn print_activations(
         return;
     };
     println!(
-        "  activations    measured on {} calibration scenes against the f32 model (normalized actions; budget max {:.2e}, mean {:.2e})",
-        report.scenes, report.budget.max, report.budget.mean
+        "  activations    measured on {} calibration scenes x {} noise draws against the f32 model (normalized actions); budget: mean at most {:.0}% over 15-bit codes, capped at {:.1e}",
+        report.scenes,
+        weights_tool::activations::NOISE_DRAWS,
+        100.0 * report.budget.mean_increase,
+        report.budget.mean_cap
     );
     println!("                 15-bit everywhere: {}", report.wide);
+    let within = report.budget.holds(&report.wide, &report.wide);
+    if !within {
+        println!(
+            "                 over the cap already: every layer keeps 15-bit codes (--activations narrow forces 8-bit)"
+        );
+    }
     let chosen = report
         .layers
         .iter()
@@ -343,9 +353,10 @@ fn print_activations(
     for layer in &report.layers {
         let (codes, why) = match layer.codes {
             scdp_engine::weights::ActivationCodes::Narrow => ("8-bit ", "within the budget"),
-            scdp_engine::weights::ActivationCodes::Wide => {
+            scdp_engine::weights::ActivationCodes::Wide if within => {
                 ("15-bit", "over the budget with the 8-bit layers before it")
             }
+            scdp_engine::weights::ActivationCodes::Wide => ("15-bit", "not tried"),
         };
         println!(
             "  {codes}         {:<40} alone: {}; {why}",

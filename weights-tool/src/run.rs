@@ -184,6 +184,41 @@ impl Runner {
     }
 }
 
+impl Runner {
+    /// The predicted actions of `inputs` for each noise `seed`: the frames pushed once, then
+    /// one inference per seed (what a controller's history gives every denoising run).
+    pub fn action_preds(&mut self, inputs: &RunInputs, seeds: &[u64]) -> Result<Vec<Vec<f32>>> {
+        let model = Model::from_bytes(self.weights.as_slice())
+            .map_err(|error| anyhow::anyhow!("{error}"))?;
+        let config = *model.config();
+        let mut policy = Policy::new(&model, self.arena.as_mut_slice())
+            .map_err(|error| anyhow::anyhow!("{error}"))?;
+        let camera = Camera::new(&inputs.intrinsics, &inputs.extrinsics)
+            .map_err(|error| anyhow::anyhow!("camera: {error}"))?;
+        policy.set_camera(camera);
+        let frames = config.n_obs_steps as usize;
+        let frame_bytes = inputs.images.len() / frames;
+        let state_dim = config.state_dim as usize;
+        for frame in 0..frames {
+            policy
+                .push_observation(
+                    &inputs.images[frame * frame_bytes..][..frame_bytes],
+                    &inputs.state[frame * state_dim..][..state_dim],
+                )
+                .map_err(|error| anyhow::anyhow!("frame {frame}: {error}"))?;
+        }
+        seeds
+            .iter()
+            .map(|&seed| {
+                let actions = policy
+                    .infer(Noise::Seed(seed))
+                    .map_err(|error| anyhow::anyhow!("inference: {error}"))?;
+                Ok(actions.action_pred().to_vec())
+            })
+            .collect()
+    }
+}
+
 /// Writes `action_pred`, `action` and `anchors_uv` as f32 safetensors.
 pub fn write_outputs(path: &Path, config: &ModelConfig, outputs: &RunOutputs) -> Result<()> {
     let as_bytes = |values: &[f32]| {

@@ -442,6 +442,14 @@ fn convert_calibrates_int8_rounding_on_scenes() {
         .count();
     assert_eq!(decided, 19, "{stdout}");
 
+    // A budget even the 15-bit file misses keeps every layer on 15-bit codes, and says so.
+    let strict_args = [&int8[..], &scenes[..], &["--action-budget", "1e-12"]].concat();
+    let strict = convert(&strict_args, &path("strict.scdp"));
+    assert!(strict.status.success(), "{}", text(&strict.stderr));
+    assert!(text(&strict.stdout).contains("over the budget already"));
+    let report = text(&tool(&["inspect", &path("strict.scdp")]).stdout);
+    assert!(report.contains("0 on 8-bit codes"), "{report}");
+
     let refused = convert(&int8, &path("refused.scdp"));
     assert!(!refused.status.success());
     let stderr = text(&refused.stderr);
