@@ -208,7 +208,11 @@ pub fn choose(
     layers.sort_by(|a, b| a.alone.mean.total_cmp(&b.alone.mean));
     let mut chosen = wide;
     // Over the cap with 15-bit codes everywhere, the file stays wide.
-    let trials = if budget.holds(&wide, &wide) { &mut layers[..] } else { &mut [] };
+    let trials = if budget.holds(&wide, &wide) {
+        &mut layers[..]
+    } else {
+        &mut []
+    };
     for layer in trials {
         let one = std::slice::from_ref(&layer.name);
         set_codes(stored, one, ActivationCodes::Narrow);
@@ -242,19 +246,28 @@ mod tests {
         assert_eq!(error.max, 20.0);
         assert_eq!(error.mean, 21.0 / 4.0);
         let nan = action_error(&[vec![f32::NAN]], &[vec![0.0]], &[1.0]);
-        let wide = ActionError { max: 0.0, mean: 1e-3 };
+        let wide = ActionError {
+            max: 0.0,
+            mean: 1e-3,
+        };
         assert!(!Budget::DEFAULT.holds(&nan, &wide));
     }
 
     #[test]
     fn a_budget_bounds_the_mean_relative_to_wide_codes_and_caps_it() {
         let budget = Budget::with_increase(0.25);
-        let wide = ActionError { max: 0.1, mean: 0.002 };
+        let wide = ActionError {
+            max: 0.1,
+            mean: 0.002,
+        };
         let at = |mean| ActionError { max: 1.0, mean };
         assert!(budget.holds(&at(0.0025), &wide));
         assert!(!budget.holds(&at(0.00251), &wide));
         // The cap: a file whose 15-bit codes already reach 0.0045 may not pass 0.005.
-        let wide = ActionError { max: 0.1, mean: 0.0045 };
+        let wide = ActionError {
+            max: 0.1,
+            mean: 0.0045,
+        };
         assert!(budget.holds(&at(0.005), &wide));
         assert!(!budget.holds(&at(0.0051), &wide));
     }

@@ -168,7 +168,9 @@ backend!(
 );
 
 /// The tile of whole bytes on AVX-512 (one plane: 16 sums, 4 weight vectors, the
-/// broadcast).
+/// broadcast). Builds alternated on Zen 5 (the latency harness, panda with every
+/// residual-block layer 8-bit, two rounds): (6, 4) encoded a frame in 1.01-1.04x the time,
+/// (8, 2) in 1.07-1.09x.
 const VNNI_BYTES_TILE: (usize, usize) = (4, 4);
 
 /// [`conv`] on whole bytes with VNNI's `vpdpbusd` (exact for 0..=255; AVX2's `vpmaddubsw`
