@@ -1339,67 +1339,21 @@ fn byte_convolution_equals_the_digit_convolution_on_every_backend() {
         let in_channels = [196, 4, 64, 256, 6, 100][case % 6];
         let out_channels = [64, 32, 96, 40][case % 4];
         let shape = ConvShape::square((1, pixels, in_channels), out_channels, 1, 1, 0);
-        let bytes: Vec<u8> = (0..shape.input_len())
-            .map(|i| match i % 7 {
-                0 => 255,
-                1 => 0,
-                _ => (rng.next().abs() * 255.0) as u8,
-            })
-            .collect();
-        let mut weight = random_i8(&mut rng, shape.weight_len());
-        weight[0] = -128;
-        weight[1] = 127;
-        let mut packed = vec![0i8; shape.int8_weight_len()];
-        scdp_engine::kernels::pack_int8_quads(&weight, in_channels, out_channels, &mut packed);
-        let weight_scales: Vec<f32> = (0..out_channels)
-            .map(|_| 0.001 + rng.next().abs())
-            .collect();
-        let bias = rng.vec(out_channels);
-        let input = ByteRows {
-            bytes: &bytes,
-            scale: 1.0 / 255.0,
-        };
-        let parameters = (&packed[..], &weight_scales[..], &bias[..]);
+        let problem = ByteCase::random(&mut rng, shape, 1.0 / 255.0);
         let initial = rng.vec(shape.output_len());
         for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
-            let run = |kernels: &dyn Kernels| {
-                let mut output = initial.clone();
-                let (weight, scales, bias) = parameters;
-                kernels.conv_int8_bytes(
-                    &shape,
-                    &input,
-                    weight,
-                    scales,
-                    bias,
-                    &mut output,
-                    accumulate,
-                );
-                output
-            };
-            let expected = run(&Scalar);
-            let high: Vec<i8> = bytes.iter().map(|&b| (b >> 7) as i8).collect();
-            let low: Vec<i8> = bytes.iter().map(|&b| (b & 127) as i8).collect();
-            let digits = DigitRows {
-                high: &high,
-                low: &low,
-                scale: input.scale,
-                nonnegative: true,
-            };
-            let mut split = initial.clone();
-            let (weight, scales, bias) = parameters;
-            Scalar.conv_int8(
-                &shape, &digits, weight, scales, bias, &mut split, accumulate,
-            );
             let what = format!("case {case} {shape:?} {accumulate:?}");
-            assert_same_bits(&expected, &split, &format!("{what}: bytes against digits"));
-            for (name, kernels) in &backends {
-                assert_same_bits(&run(*kernels), &expected, &format!("{what} {name}"));
-            }
+            let expected = problem.check_backends(&backends, accumulate, &initial, &what);
             #[cfg(target_arch = "x86_64")]
             if let Some(amx) = Amx::detect() {
                 let mut found = initial.clone();
-                let taken = amx
-                    .conv_int8_bytes_on_tiles(&shape, &input, parameters, &mut found, accumulate);
+                let taken = amx.conv_int8_bytes_on_tiles(
+                    &shape,
+                    &problem.input(),
+                    problem.parameters(),
+                    &mut found,
+                    accumulate,
+                );
                 let takes = in_channels % 4 == 0 && out_channels % 32 == 0;
                 assert_eq!(taken, takes, "{what}: the tiles' choice");
                 if taken {
@@ -1412,6 +1366,116 @@ fn byte_convolution_equals_the_digit_convolution_on_every_backend() {
     #[cfg(target_arch = "x86_64")]
     if Amx::detect().is_some() {
         assert!(on_tiles >= 10, "only {on_tiles} cases ran on the tiles");
+    }
+}
+
+/// A convolution on whole bytes: bytes 0 and 255 among random ones, weights -128 and 127
+/// among random ones (packed), random scales and bias.
+struct ByteCase {
+    shape: ConvShape,
+    bytes: Vec<u8>,
+    scale: f32,
+    packed: Vec<i8>,
+    weight_scales: Vec<f32>,
+    bias: Vec<f32>,
+}
+
+impl ByteCase {
+    fn random(rng: &mut Lcg, shape: ConvShape, scale: f32) -> Self {
+        let bytes = (0..shape.input_len())
+            .map(|i| match i % 7 {
+                0 => 255,
+                1 => 0,
+                _ => (rng.next().abs() * 255.0) as u8,
+            })
+            .collect();
+        let mut weight = random_i8(rng, shape.weight_len());
+        weight[0] = -128;
+        weight[shape.weight_len() - 1] = 127;
+        let mut packed = vec![0i8; shape.int8_weight_len()];
+        let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+        scdp_engine::kernels::pack_int8_quads(&weight, in_channels, out_channels, &mut packed);
+        ByteCase {
+            shape,
+            bytes,
+            scale,
+            packed,
+            weight_scales: (0..out_channels)
+                .map(|_| 0.001 + rng.next().abs())
+                .collect(),
+            bias: rng.vec(out_channels),
+        }
+    }
+
+    fn input(&self) -> ByteRows<'_> {
+        ByteRows {
+            bytes: &self.bytes,
+            scale: self.scale,
+        }
+    }
+
+    fn parameters(&self) -> (&[i8], &[f32], &[f32]) {
+        (&self.packed, &self.weight_scales, &self.bias)
+    }
+
+    /// `conv_int8_bytes` on `kernels`, starting from `initial`.
+    fn run(&self, kernels: &dyn Kernels, accumulate: Accumulate, initial: &[f32]) -> Vec<f32> {
+        let mut output = initial.to_vec();
+        let (weight, scales, bias) = self.parameters();
+        let input = self.input();
+        kernels.conv_int8_bytes(
+            &self.shape,
+            &input,
+            weight,
+            scales,
+            bias,
+            &mut output,
+            accumulate,
+        );
+        output
+    }
+
+    /// The reference's output, after checking that it equals `conv_int8` on the bytes split
+    /// into digits and that every backend gives its bits.
+    fn check_backends(
+        &self,
+        backends: &[(&str, &dyn Kernels)],
+        accumulate: Accumulate,
+        initial: &[f32],
+        what: &str,
+    ) -> Vec<f32> {
+        let expected = self.run(&Scalar, accumulate, initial);
+        let split = self.run_split(accumulate, initial);
+        assert_same_bits(&split, &expected, &format!("{what}: digits against bytes"));
+        for (name, kernels) in backends {
+            let found = self.run(*kernels, accumulate, initial);
+            assert_same_bits(&found, &expected, &format!("{what} {name}"));
+        }
+        expected
+    }
+
+    /// The reference's `conv_int8` on the bytes split into digits.
+    fn run_split(&self, accumulate: Accumulate, initial: &[f32]) -> Vec<f32> {
+        let high: Vec<i8> = self.bytes.iter().map(|&b| (b >> 7) as i8).collect();
+        let low: Vec<i8> = self.bytes.iter().map(|&b| (b & 127) as i8).collect();
+        let digits = DigitRows {
+            high: &high,
+            low: &low,
+            scale: self.scale,
+            nonnegative: true,
+        };
+        let mut output = initial.to_vec();
+        let (weight, scales, bias) = self.parameters();
+        Scalar.conv_int8(
+            &self.shape,
+            &digits,
+            weight,
+            scales,
+            bias,
+            &mut output,
+            accumulate,
+        );
+        output
     }
 }
 
@@ -1455,65 +1519,12 @@ fn narrow_byte_convolution_is_bit_identical_on_every_backend() {
             stride,
             padding,
         );
-        let bytes: Vec<u8> = (0..shape.input_len())
-            .map(|i| match i % 5 {
-                0 => 255,
-                1 => 0,
-                _ => (rng.next().abs() * 255.0) as u8,
-            })
-            .collect();
-        let mut weight = random_i8(&mut rng, shape.weight_len());
-        weight[0] = -128;
-        weight[shape.weight_len() - 1] = 127;
-        let mut packed = vec![0i8; shape.int8_weight_len()];
-        scdp_engine::kernels::pack_int8_quads(&weight, in_channels, out_channels, &mut packed);
-        let weight_scales: Vec<f32> = (0..out_channels)
-            .map(|_| 0.001 + rng.next().abs() * 0.01)
-            .collect();
-        let bias = rng.vec(out_channels);
-        let input = ByteRows {
-            bytes: &bytes,
-            scale: 0.01 + rng.next().abs(),
-        };
+        let scale = 0.01 + rng.next().abs();
+        let problem = ByteCase::random(&mut rng, shape, scale);
         let initial = rng.vec(shape.output_len());
         for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
-            let run = |kernels: &dyn Kernels| {
-                let mut output = initial.clone();
-                kernels.conv_int8_bytes(
-                    &shape,
-                    &input,
-                    &packed,
-                    &weight_scales,
-                    &bias,
-                    &mut output,
-                    accumulate,
-                );
-                output
-            };
-            let expected = run(&Scalar);
-            let high: Vec<i8> = bytes.iter().map(|&b| (b >> 7) as i8).collect();
-            let low: Vec<i8> = bytes.iter().map(|&b| (b & 127) as i8).collect();
-            let digits = DigitRows {
-                high: &high,
-                low: &low,
-                scale: input.scale,
-                nonnegative: true,
-            };
-            let mut split = initial.clone();
-            Scalar.conv_int8(
-                &shape,
-                &digits,
-                &packed,
-                &weight_scales,
-                &bias,
-                &mut split,
-                accumulate,
-            );
             let what = format!("case {case} {shape:?} {accumulate:?}");
-            assert_same_bits(&split, &expected, &format!("{what}: digits against bytes"));
-            for (name, kernels) in &backends {
-                assert_same_bits(&run(*kernels), &expected, &format!("{what} {name}"));
-            }
+            problem.check_backends(&backends, accumulate, &initial, &what);
         }
         // The model's path: quantize in the backend's form, then convolve.
         let values: Vec<f32> = (0..shape.input_len())
@@ -1533,12 +1544,11 @@ fn narrow_byte_convolution_is_bit_identical_on_every_backend() {
             let quantized = quantize.quantize_narrow(kernels, &values);
             let codes = quantize.view(&quantized);
             let mut output = vec![0.0; shape.output_len()];
-            let parameters = (&packed[..], &weight_scales[..], &bias[..]);
             scdp_engine::layer::convolve_codes(
                 kernels,
                 &shape,
                 &codes,
-                parameters,
+                problem.parameters(),
                 &mut output,
                 Accumulate::Overwrite,
             );

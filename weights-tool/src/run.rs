@@ -138,8 +138,14 @@ impl Runner {
         Ok(Runner { weights, arena })
     }
 
-    /// One inference: pushes every frame (oldest first), then denoises.
-    pub fn run(&mut self, inputs: &RunInputs, seed: u64) -> Result<(RunOutputs, StageTimes)> {
+    /// Loads the model, pushes every frame of `inputs` (oldest first; their encoding times
+    /// into `times`), then hands the policy to `then`.
+    fn with_frames<R>(
+        &mut self,
+        inputs: &RunInputs,
+        times: &mut StageTimes,
+        then: impl FnOnce(&mut Policy<'_, '_>) -> Result<R>,
+    ) -> Result<R> {
         let model = Model::from_bytes(self.weights.as_slice())
             .map_err(|error| anyhow::anyhow!("{error}"))?;
         let config = *model.config();
@@ -151,7 +157,6 @@ impl Runner {
         let frames = config.n_obs_steps as usize;
         let frame_bytes = inputs.images.len() / frames;
         let state_dim = config.state_dim as usize;
-        let mut times = StageTimes::default();
         for frame in 0..frames {
             let start = Instant::now();
             policy
@@ -164,58 +169,47 @@ impl Runner {
             times.encode_frames += elapsed;
             times.encode_newest = elapsed;
         }
+        then(&mut policy)
+    }
+
+    /// One inference: pushes every frame (oldest first), then denoises.
+    pub fn run(&mut self, inputs: &RunInputs, seed: u64) -> Result<(RunOutputs, StageTimes)> {
+        let mut times = StageTimes::default();
         let noise = match &inputs.noise {
             Some(values) => Noise::Given(values),
             None => Noise::Seed(seed),
         };
-        let start = Instant::now();
-        let actions = policy
-            .infer(noise)
-            .map_err(|error| anyhow::anyhow!("inference: {error}"))?;
-        times.denoise = start.elapsed();
-        Ok((
-            RunOutputs {
+        let (outputs, denoise) = self.with_frames(inputs, &mut times, |policy| {
+            let start = Instant::now();
+            let actions = policy
+                .infer(noise)
+                .map_err(|error| anyhow::anyhow!("inference: {error}"))?;
+            let denoise = start.elapsed();
+            let outputs = RunOutputs {
                 action_pred: actions.action_pred().to_vec(),
                 action: actions.action().to_vec(),
                 anchors_uv: actions.anchors_uv().to_vec(),
-            },
-            times,
-        ))
+            };
+            Ok((outputs, denoise))
+        })?;
+        times.denoise = denoise;
+        Ok((outputs, times))
     }
-}
 
-impl Runner {
     /// The predicted actions of `inputs` for each noise `seed`: the frames pushed once, then
     /// one inference per seed (what a controller's history gives every denoising run).
     pub fn action_preds(&mut self, inputs: &RunInputs, seeds: &[u64]) -> Result<Vec<Vec<f32>>> {
-        let model = Model::from_bytes(self.weights.as_slice())
-            .map_err(|error| anyhow::anyhow!("{error}"))?;
-        let config = *model.config();
-        let mut policy = Policy::new(&model, self.arena.as_mut_slice())
-            .map_err(|error| anyhow::anyhow!("{error}"))?;
-        let camera = Camera::new(&inputs.intrinsics, &inputs.extrinsics)
-            .map_err(|error| anyhow::anyhow!("camera: {error}"))?;
-        policy.set_camera(camera);
-        let frames = config.n_obs_steps as usize;
-        let frame_bytes = inputs.images.len() / frames;
-        let state_dim = config.state_dim as usize;
-        for frame in 0..frames {
-            policy
-                .push_observation(
-                    &inputs.images[frame * frame_bytes..][..frame_bytes],
-                    &inputs.state[frame * state_dim..][..state_dim],
-                )
-                .map_err(|error| anyhow::anyhow!("frame {frame}: {error}"))?;
-        }
-        seeds
-            .iter()
-            .map(|&seed| {
-                let actions = policy
-                    .infer(Noise::Seed(seed))
-                    .map_err(|error| anyhow::anyhow!("inference: {error}"))?;
-                Ok(actions.action_pred().to_vec())
-            })
-            .collect()
+        self.with_frames(inputs, &mut StageTimes::default(), |policy| {
+            seeds
+                .iter()
+                .map(|&seed| {
+                    let actions = policy
+                        .infer(Noise::Seed(seed))
+                        .map_err(|error| anyhow::anyhow!("inference: {error}"))?;
+                    Ok(actions.action_pred().to_vec())
+                })
+                .collect()
+        })
     }
 }
 
