@@ -119,10 +119,10 @@ pub fn set_all_narrow(
     Ok(names)
 }
 
-/// Noise draws each calibration scene is denoised from. The errors that matter are rare:
-/// on the trained Meta-World policy, one chunk in a hundred of the closed loop's moved by
-/// more than the budget with 8-bit codes in the second stage, which 32 scenes with one draw
-/// each did not show and 8 draws each did (docs/QUANTIZATION.md).
+/// Noise draws each calibration scene is denoised from: the mean error the choice is made
+/// on is taken over `scenes x NOISE_DRAWS` inferences (256 for 32 scenes), over which it
+/// ranked the trained Meta-World policy's layers as its closed loop does
+/// (docs/QUANTIZATION.md).
 pub const NOISE_DRAWS: usize = 8;
 
 /// The predicted actions of a weights file on every scene, for [`NOISE_DRAWS`] noise seeds
