@@ -1,13 +1,14 @@
 //! One layer of the model with whichever weights the file holds: f32 weights go to the f32
-//! kernels, int8 weights have their input quantized first (the trunk's to digit planes, the
-//! U-Net's to whole codes) and go to the integer kernels. The bridge between the weights
+//! kernels, int8 weights have their input quantized first (the trunk's to digit planes, or
+//! to bytes where the file chose 8-bit codes; the U-Net's to whole codes) and go to the
+//! integer kernels. The bridge between the weights
 //! file's types and the kernels, which know neither the file nor the model.
 
 use crate::kernels::{Accumulate, ConvShape, DigitRows, Kernels, QuantizeScratch, TrunkCodes};
 use crate::weights::Weight;
 
-/// How a layer with int8 weights quantizes its input (one scale for the whole input,
-/// 15-bit codes either way).
+/// How a layer with int8 weights reads 15-bit codes of its input (one scale for the whole
+/// input either way; the trunk's 8-bit layers are the pyramid's, [`convolve_codes`]).
 #[derive(Debug)]
 pub enum Activations<'s, 'a> {
     /// Two digit planes for unsigned-by-signed byte dot products: the trunk, whose inputs
