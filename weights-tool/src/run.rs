@@ -138,38 +138,35 @@ impl Runner {
         Ok(Runner { weights, arena })
     }
 
-    /// Loads the model, pushes every frame of `inputs` (oldest first; their encoding times
-    /// into `times`), then hands the policy to `then`.
+    /// Loads the model and a policy on the arena, its camera set to `inputs`', and hands the
+    /// policy to `then`.
+    fn with_policy<R>(
+        &mut self,
+        inputs: &RunInputs,
+        then: impl FnOnce(&mut Policy<'_, '_>) -> Result<R>,
+    ) -> Result<R> {
+        let model = Model::from_bytes(self.weights.as_slice())
+            .map_err(|error| anyhow::anyhow!("{error}"))?;
+        let mut policy = Policy::new(&model, self.arena.as_mut_slice())
+            .map_err(|error| anyhow::anyhow!("{error}"))?;
+        let camera = Camera::new(&inputs.intrinsics, &inputs.extrinsics)
+            .map_err(|error| anyhow::anyhow!("camera: {error}"))?;
+        policy.set_camera(camera);
+        then(&mut policy)
+    }
+
+    /// [`with_policy`](Self::with_policy), every frame of `inputs` pushed first (oldest
+    /// first; their encoding times into `times`).
     fn with_frames<R>(
         &mut self,
         inputs: &RunInputs,
         times: &mut StageTimes,
         then: impl FnOnce(&mut Policy<'_, '_>) -> Result<R>,
     ) -> Result<R> {
-        let model = Model::from_bytes(self.weights.as_slice())
-            .map_err(|error| anyhow::anyhow!("{error}"))?;
-        let config = *model.config();
-        let mut policy = Policy::new(&model, self.arena.as_mut_slice())
-            .map_err(|error| anyhow::anyhow!("{error}"))?;
-        let camera = Camera::new(&inputs.intrinsics, &inputs.extrinsics)
-            .map_err(|error| anyhow::anyhow!("camera: {error}"))?;
-        policy.set_camera(camera);
-        let frames = config.n_obs_steps as usize;
-        let frame_bytes = inputs.images.len() / frames;
-        let state_dim = config.state_dim as usize;
-        for frame in 0..frames {
-            let start = Instant::now();
-            policy
-                .push_observation(
-                    &inputs.images[frame * frame_bytes..][..frame_bytes],
-                    &inputs.state[frame * state_dim..][..state_dim],
-                )
-                .map_err(|error| anyhow::anyhow!("frame {frame}: {error}"))?;
-            let elapsed = start.elapsed();
-            times.encode_frames += elapsed;
-            times.encode_newest = elapsed;
-        }
-        then(&mut policy)
+        self.with_policy(inputs, |policy| {
+            push_frames(policy, inputs, times)?;
+            then(policy)
+        })
     }
 
     /// One inference: pushes every frame (oldest first), then denoises.
@@ -211,6 +208,31 @@ impl Runner {
                 .collect()
         })
     }
+}
+
+/// Pushes every frame of `inputs` (oldest first), adding their encoding times to `times`.
+fn push_frames(
+    policy: &mut Policy<'_, '_>,
+    inputs: &RunInputs,
+    times: &mut StageTimes,
+) -> Result<()> {
+    let config = *policy.config();
+    let frames = config.n_obs_steps as usize;
+    let frame_bytes = inputs.images.len() / frames;
+    let state_dim = config.state_dim as usize;
+    for frame in 0..frames {
+        let start = Instant::now();
+        policy
+            .push_observation(
+                &inputs.images[frame * frame_bytes..][..frame_bytes],
+                &inputs.state[frame * state_dim..][..state_dim],
+            )
+            .map_err(|error| anyhow::anyhow!("frame {frame}: {error}"))?;
+        let elapsed = start.elapsed();
+        times.encode_frames += elapsed;
+        times.encode_newest = elapsed;
+    }
+    Ok(())
 }
 
 /// Writes `action_pred`, `action` and `anchors_uv` as f32 safetensors.
@@ -271,18 +293,35 @@ pub fn bench(
     iterations: usize,
 ) -> Result<BTreeMap<&'static str, (Duration, Duration)>> {
     ensure!(iterations > 0, "--bench needs at least one iteration");
-    runner.run(inputs, 0)?;
+    let noise = match &inputs.noise {
+        Some(values) => Noise::Given(values),
+        None => Noise::Seed(0),
+    };
     let mut encode = Vec::new();
     let mut denoise = Vec::new();
     let mut total = Vec::new();
     let mut streaming = Vec::new();
-    for _ in 0..iterations {
-        let (_, times) = runner.run(inputs, 0)?;
-        encode.push(times.encode_newest);
-        denoise.push(times.denoise);
-        total.push(times.encode_frames + times.denoise);
-        streaming.push(times.encode_newest + times.denoise);
-    }
+    // One model and one policy for every run, as a controller keeps them; each run starts
+    // from an empty history. The first warms up.
+    runner.with_policy(inputs, |policy| {
+        for iteration in 0..=iterations {
+            policy.reset();
+            let mut times = StageTimes::default();
+            push_frames(policy, inputs, &mut times)?;
+            let start = Instant::now();
+            policy
+                .infer(noise)
+                .map_err(|error| anyhow::anyhow!("inference: {error}"))?;
+            times.denoise = start.elapsed();
+            if iteration > 0 {
+                encode.push(times.encode_newest);
+                denoise.push(times.denoise);
+                total.push(times.encode_frames + times.denoise);
+                streaming.push(times.encode_newest + times.denoise);
+            }
+        }
+        Ok(())
+    })?;
     Ok(BTreeMap::from([
         ("1 encode one frame", percentiles(&mut encode)),
         ("2 denoise (all steps)", percentiles(&mut denoise)),
