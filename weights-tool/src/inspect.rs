@@ -12,22 +12,25 @@ fn mebibytes(bytes: usize) -> String {
     format!("{:.2} MiB", bytes as f64 / (1024.0 * 1024.0))
 }
 
-/// The names of the tensors of a weights file stored as `dtype`, in file order.
-pub fn int8_tensors_of(bytes: &[u8], dtype: DType) -> Result<Vec<String>> {
+/// How many weights of a file read 15-bit and 8-bit activation codes (dtypes `i8` and
+/// `i8a8`).
+pub fn activation_code_counts(bytes: &[u8]) -> Result<(usize, usize)> {
     let aligned = crate::writer::aligned_copy(bytes);
     let model =
         Model::from_bytes(aligned.as_slice()).map_err(|error| anyhow::anyhow!("{error}"))?;
     let file = model.file();
-    let mut names = Vec::new();
+    let (mut wide, mut narrow) = (0, 0);
     for index in 0..file.tensor_count() {
         let entry = file
             .entry(index)
             .map_err(|error| anyhow::anyhow!("{error}"))?;
-        if entry.dtype == dtype {
-            names.push(entry.name.to_owned());
+        match entry.dtype {
+            DType::I8 => wide += 1,
+            DType::I8Narrow => narrow += 1,
+            DType::F32 => {}
         }
     }
-    Ok(names)
+    Ok((wide, narrow))
 }
 
 /// A one-screen report: config, storage, arena plan, then the tensor table.

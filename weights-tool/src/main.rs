@@ -309,21 +309,15 @@ fn print_activations(
     bytes: &[u8],
     report: Option<&weights_tool::activations::WidthReport>,
 ) {
-    use scdp_engine::format::DType;
-    let narrow = weights_tool::inspect::int8_tensors_of(bytes, DType::I8Narrow);
-    let wide = weights_tool::inspect::int8_tensors_of(bytes, DType::I8);
-    let (narrow, wide) = (narrow.unwrap_or_default(), wide.unwrap_or_default());
     let Some(report) = report else {
+        let (wide, narrow) =
+            weights_tool::inspect::activation_code_counts(bytes).unwrap_or_default();
         let why = match args.activations {
             ActivationsArg::Narrow => "8-bit in every residual-block layer (--activations narrow)",
             ActivationsArg::Wide => "15-bit everywhere (--activations wide)",
             ActivationsArg::Measured => "15-bit everywhere (no calibration scenes to measure on)",
         };
-        println!(
-            "  activations    {why}: {} layers 8-bit, {} 15-bit",
-            narrow.len(),
-            wide.len()
-        );
+        println!("  activations    {why}: {narrow} layers 8-bit, {wide} 15-bit");
         return;
     };
     println!(
