@@ -1,11 +1,11 @@
 //! One layer of the model with whichever weights the file holds: f32 weights go to the f32
 //! kernels, int8 weights have their input quantized first (the trunk's to digit planes, or
-//! to bytes where the file chose 8-bit codes; the U-Net's to whole codes) and go to the
-//! integer kernels. The bridge between the weights
+//! to bytes where the file chose 8-bit codes; the U-Net's to whole codes, or to signed
+//! bytes where the file chose 8-bit codes) and go to the integer kernels. The bridge between the weights
 //! file's types and the kernels, which know neither the file nor the model.
 
 use crate::kernels::{Accumulate, ConvShape, DigitRows, Kernels, QuantizeScratch, TrunkCodes};
-use crate::weights::Weight;
+use crate::weights::{ActivationCodes, Weight};
 
 /// How a layer with int8 weights reads 15-bit codes of its input (one scale for the whole
 /// input either way; the trunk's 8-bit layers are the pyramid's, [`convolve_codes`]).
@@ -14,7 +14,8 @@ pub enum Activations<'s, 'a> {
     /// Two digit planes for unsigned-by-signed byte dot products: the trunk, whose inputs
     /// are ReLU outputs.
     Digits(&'s mut QuantizeScratch<'a>),
-    /// Whole signed codes for 16-bit dot products: the U-Net, whose inputs have both signs.
+    /// Whole signed codes for 16-bit dot products (signed bytes where the file chose 8-bit
+    /// codes): the U-Net, whose inputs have both signs.
     Codes(&'s mut QuantizeScratch<'a>),
 }
 
@@ -37,6 +38,17 @@ pub fn convolve(
         (Weight::Int8 { values, scales, .. }, Activations::Digits(scratch)) => {
             let digits = scratch.quantize(kernels, input);
             kernels.conv_int8(shape, &digits, values, scales, bias, output, accumulate)
+        }
+        (
+            Weight::Int8 {
+                values,
+                scales,
+                activations: ActivationCodes::Narrow,
+            },
+            Activations::Codes(scratch),
+        ) => {
+            let codes = scratch.quantize_signed_bytes(kernels, input, shape.in_channels);
+            kernels.conv_int8_signed_bytes(shape, &codes, values, scales, bias, output, accumulate)
         }
         (Weight::Int8 { values, scales, .. }, Activations::Codes(scratch)) => {
             let codes = scratch.quantize_codes(kernels, input, shape.in_channels);

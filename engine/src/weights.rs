@@ -38,8 +38,9 @@ pub trait TensorSource<'w> {
     ) -> Result<Weight<'w>, Error>;
 }
 
-/// Whether a layer can take [`ActivationCodes::Narrow`]: only where its input is a ReLU
-/// output in one trunk map (the residual blocks' convolutions).
+/// Whether a layer can take [`ActivationCodes::Narrow`]: the residual blocks'
+/// convolutions, the trunk's (whose inputs are ReLU outputs in one map) and the U-Net's
+/// (whose inputs are one sequence, signed).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum NarrowCodes {
     Allowed,
@@ -52,8 +53,9 @@ pub enum NarrowCodes {
 pub enum ActivationCodes {
     /// 15-bit codes: two digit planes in the trunk, whole i16 codes in the U-Net and FiLM.
     Wide,
-    /// 8-bit unsigned codes, one byte a value (`scale = max / 255`): half the trunk's
-    /// integer products, for nonnegative inputs.
+    /// 8-bit codes, one byte a value: unsigned in the trunk, whose inputs are nonnegative
+    /// (`scale = max / 255`), signed in the U-Net (`scale = max |x| / 127`); half the
+    /// integer products of the wide codes where whole bytes can be multiplied.
     Narrow,
 }
 
@@ -348,16 +350,18 @@ fn residual_block<'w>(
     Ok(ResidualBlock {
         in_channels,
         out_channels,
-        conv0: conv(
+        conv0: conv_codes(
             source,
             format_args!("{name}.conv0"),
             &[kernel, in_channels, out_channels],
+            NarrowCodes::Allowed,
         )?,
         norm0: norm(source, format_args!("{name}.norm0"), out_channels)?,
-        conv1: conv(
+        conv1: conv_codes(
             source,
             format_args!("{name}.conv1"),
             &[kernel, out_channels, out_channels],
+            NarrowCodes::Allowed,
         )?,
         norm1: norm(source, format_args!("{name}.norm1"), out_channels)?,
         film_weight: source.weight(

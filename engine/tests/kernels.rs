@@ -12,6 +12,7 @@ use scdp_engine::kernels::x86_64::amx::{Amx, TileLayout};
 type TileLayout = ();
 use scdp_engine::kernels::{
     Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, NarrowForm, QuantizeScratch,
+    SignedByteRows,
 };
 
 struct Lcg(u64);
@@ -541,6 +542,41 @@ impl CodeCase {
         output
     }
 
+    /// [`CodeCase::run`] with the codes (which must fit a signed byte) as narrow signed
+    /// codes: signed bytes and their row sums.
+    fn run_signed_bytes(
+        &self,
+        kernels: &dyn Kernels,
+        accumulate: Accumulate,
+        initial: &[f32],
+    ) -> Vec<f32> {
+        let codes: Vec<i8> = padded_codes(&self.codes, self.shape.in_channels)
+            .into_iter()
+            .map(|code| i8::try_from(code).unwrap())
+            .collect();
+        let stride = CodeRows::row_stride(self.shape.in_channels);
+        let row_sums: Vec<i32> = codes
+            .chunks_exact(stride)
+            .map(|row| row.iter().map(|&code| i32::from(code)).sum())
+            .collect();
+        let input = SignedByteRows {
+            codes: &codes,
+            row_sums: &row_sums,
+            scale: self.scale,
+        };
+        let mut output = initial.to_vec();
+        kernels.conv_int8_signed_bytes(
+            &self.shape,
+            &input,
+            &self.packed,
+            &self.weight_scales,
+            &self.bias,
+            &mut output,
+            accumulate,
+        );
+        output
+    }
+
     fn run(&self, kernels: &dyn Kernels, accumulate: Accumulate, initial: &[f32]) -> Vec<f32> {
         let codes = padded_codes(&self.codes, self.shape.in_channels);
         let input = CodeRows {
@@ -694,6 +730,189 @@ fn int8_code_convolution_is_bit_identical_on_every_backend() {
                 let what = format!("tiles case {case} {shape:?} {accumulate:?}");
                 assert_same_bits(&found, &expected, &what);
             }
+        }
+    }
+}
+
+/// The U-Net's narrow signed codes (|code| <= 127, one byte each) on every backend give the
+/// bits of the scalar reference's 15-bit code convolution on the same codes widened to i16
+/// (one contract, two storage forms; the wide one checked against the textbook above): the
+/// U-Net's shapes, random ones with channel tails, codes at +-127 and weights at -128 and
+/// 127, both accumulate modes. VNNI runs them as weights offset by 128 times signed bytes
+/// less 128 times each pixel's code sum, which only the exact answer can hide.
+#[test]
+fn narrow_signed_code_convolution_equals_the_code_convolution_on_every_backend() {
+    let mut rng = Lcg(97);
+    let mut shapes = vec![
+        ConvShape::sequence(16, 10, 128, 5, 1, 2),
+        ConvShape::sequence(16, 128, 128, 5, 1, 2),
+        ConvShape::sequence(8, 256, 256, 5, 1, 2),
+        ConvShape::sequence(4, 768, 256, 5, 1, 2),
+        ConvShape::sequence(4, 384, 384, 5, 1, 2),
+        ConvShape::sequence(16, 128, 128, 3, 2, 1),
+    ];
+    for _ in 0..30 {
+        let kernel = [1, 3, 5][rng.below(3)];
+        shapes.push(ConvShape::sequence(
+            1 + rng.below(20),
+            1 + rng.below(90),
+            [1, 5, 8, 16, 24, 31, 32, 40, 64, 96, 130][rng.below(11)],
+            kernel,
+            1 + rng.below(2),
+            kernel / 2,
+        ));
+    }
+    let shapes: Vec<ConvShape> = shapes
+        .into_iter()
+        .filter(|shape| shape.in_width + 2 * shape.padding_width >= shape.kernel_width)
+        .collect();
+    let backends = backends();
+    for (case, &shape) in shapes.iter().enumerate() {
+        let mut code_case = CodeCase::random(&mut rng, shape);
+        code_case.codes = (0..shape.input_len())
+            .map(|i| match i % 9 {
+                2 => 127,
+                5 => -127,
+                6 => 0,
+                _ => (rng.next() * 127.0).round() as i32,
+            })
+            .collect();
+        let initial = rng.vec(shape.output_len());
+        for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
+            let expected = code_case.run(&Scalar, accumulate, &initial);
+            for (name, kernels) in &backends {
+                let found = code_case.run_signed_bytes(*kernels, accumulate, &initial);
+                let what = format!("{name} case {case} {shape:?} {accumulate:?}");
+                assert_same_bits(&found, &expected, &what);
+            }
+        }
+        // The model's path: each backend quantizes the same input and convolves it.
+        let values: Vec<f32> = rng.vec(shape.input_len()).iter().map(|x| x * 3.0).collect();
+        let convolve = |kernels: &dyn Kernels| {
+            let mut scratch =
+                vec![0i8; 2 * shape.in_width * CodeRows::row_stride(shape.in_channels)];
+            let mut quantize = QuantizeScratch {
+                values: &mut scratch,
+            };
+            let codes = quantize.quantize_signed_bytes(kernels, &values, shape.in_channels);
+            let mut output = vec![0.0; shape.output_len()];
+            let (packed, scales, bias) =
+                (&code_case.packed, &code_case.weight_scales, &code_case.bias);
+            kernels.conv_int8_signed_bytes(
+                &shape,
+                &codes,
+                packed,
+                scales,
+                bias,
+                &mut output,
+                Accumulate::Overwrite,
+            );
+            output
+        };
+        let expected = convolve(&Scalar);
+        for (name, kernels) in &backends {
+            let what = format!("case {case} {shape:?} quantized narrow on {name}");
+            assert_same_bits(&convolve(*kernels), &expected, &what);
+        }
+    }
+}
+
+/// The widest sums a narrow signed convolution can make (every code +-127, every weight
+/// -128 or 127, 768 channels, 5 taps) come out exact on every backend: `(w + 128) c` then
+/// less `128 sum c` must not lose a unit anywhere.
+#[test]
+fn narrow_signed_code_convolution_is_exact_at_the_extremes() {
+    let (channels, out_channels) = (768, 64);
+    let shape = ConvShape::sequence(4, channels, out_channels, 5, 1, 2);
+    for (code, weight_value) in [
+        (127i8, i8::MIN),
+        (-127, i8::MIN),
+        (127, i8::MAX),
+        (-127, i8::MAX),
+    ] {
+        let codes = vec![code; shape.input_len()];
+        let weight = vec![weight_value; shape.weight_len()];
+        let mut packed = vec![0i8; shape.int8_weight_len()];
+        scdp_engine::kernels::pack_int8_quads(&weight, channels, out_channels, &mut packed);
+        let row_sums = vec![i32::from(code) * channels as i32; 4];
+        let (ones, zeros) = (vec![1.0f32; out_channels], vec![0.0f32; out_channels]);
+        let input = SignedByteRows {
+            codes: &codes,
+            row_sums: &row_sums,
+            scale: 1.0,
+        };
+        for (name, kernels) in backends() {
+            let mut output = vec![f32::NAN; shape.output_len()];
+            let (ones, zeros) = (&ones, &zeros);
+            kernels.conv_int8_signed_bytes(
+                &shape,
+                &input,
+                &packed,
+                ones,
+                zeros,
+                &mut output,
+                Accumulate::Overwrite,
+            );
+            for position in 0..4 {
+                // Positions 0 and 3 have two taps in the padding, 1 and 2 one.
+                let taps = [3, 4, 4, 3][position] as i64;
+                let exact = i64::from(code) * i64::from(weight_value) * channels as i64 * taps;
+                for &value in &output[position * out_channels..][..out_channels] {
+                    assert_eq!(
+                        value, exact as f32,
+                        "{name} {code} x {weight_value} at {position}"
+                    );
+                }
+            }
+        }
+    }
+}
+
+/// Narrow signed codes quantize within half a step of the input (one scale: the largest
+/// magnitude is code 127), keep the sign, pad rows with zeros, carry each row's code sum,
+/// and come out the same on every backend; a non-finite value gives a NaN scale and zero
+/// codes.
+#[test]
+fn narrow_signed_quantization_round_trips_with_row_sums() {
+    let mut rng = Lcg(43);
+    for (rows, row_len) in [(16, 10), (4, 768), (8, 257), (1, 3)] {
+        let input: Vec<f32> = rng.vec(rows * row_len).iter().map(|x| x * 4.0).collect();
+        let mut non_finite = input.clone();
+        non_finite[(rows - 1) * row_len] = f32::INFINITY;
+        let stride = CodeRows::row_stride(row_len);
+        let quantize = |kernels: &dyn Kernels, input: &[f32]| {
+            let mut codes = vec![7i8; rows * stride];
+            let mut row_sums = vec![7i32; rows];
+            let scale = kernels.quantize_signed_bytes(input, row_len, &mut codes, &mut row_sums);
+            (codes, row_sums, scale)
+        };
+        let (codes, row_sums, scale) = quantize(&Scalar, &input);
+        let largest = input.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+        assert_eq!(scale, largest / 127.0);
+        assert!(codes.iter().any(|&c| c.abs() == 127));
+        for row in 0..rows {
+            let values = &input[row * row_len..][..row_len];
+            let row_codes = &codes[row * stride..][..stride];
+            assert!(
+                row_codes[row_len..].iter().all(|&c| c == 0),
+                "padding of row {row}"
+            );
+            let sum: i32 = row_codes.iter().map(|&c| i32::from(c)).sum();
+            assert_eq!(row_sums[row], sum, "sum of row {row}");
+            for (&value, &code) in values.iter().zip(row_codes) {
+                assert!(code != i8::MIN);
+                // Half a step, plus the f32 roundings of `x * (127 / max)`.
+                let error = (value as f64 - code as f64 * scale as f64).abs();
+                assert!(error <= 0.501 * scale as f64, "{value} -> {code}");
+            }
+        }
+        let (nan_codes, nan_sums, nan_scale) = quantize(&Scalar, &non_finite);
+        assert!(nan_scale.is_nan());
+        assert!(nan_codes.iter().all(|&c| c == 0) && nan_sums.iter().all(|&s| s == 0));
+        for (name, kernels) in backends() {
+            let found = quantize(kernels, &input);
+            assert_eq!((&found.0, &found.1), (&codes, &row_sums), "{name} codes");
+            assert_eq!(found.2.to_bits(), scale.to_bits(), "{name} scale");
         }
     }
 }

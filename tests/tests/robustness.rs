@@ -1406,7 +1406,7 @@ fn narrow_activation_codes_are_refused_where_the_engine_has_no_narrow_path() {
     let file = synthetic_weights_file_as(&ModelConfig::TINY, 5, Quant::Int8).unwrap();
     for name in [
         "proj.0.weight",
-        "unet.down.0.0.conv0.weight",
+        "unet.down.0.downsample.weight",
         "unet.mid.0.film.weight",
     ] {
         let mut tensors = tensors_of(file.as_slice());
@@ -1420,12 +1420,15 @@ fn narrow_activation_codes_are_refused_where_the_engine_has_no_narrow_path() {
             "{name}"
         );
     }
+    // The residual blocks' convolutions have one, in the trunk and in the U-Net.
     let mut tensors = tensors_of(file.as_slice());
-    let index = tensors
-        .iter()
-        .position(|t| t.name == "backbone.layer2.0.conv1.weight")
-        .unwrap();
-    tensors[index].dtype = DType::I8Narrow as u32;
+    for name in [
+        "backbone.layer2.0.conv1.weight",
+        "unet.down.0.0.conv0.weight",
+    ] {
+        let index = tensors.iter().position(|t| t.name == name).unwrap();
+        tensors[index].dtype = DType::I8Narrow as u32;
+    }
     let edited = aligned_copy(&rebuild_onto(file.as_slice(), &tensors));
     let model = Model::from_bytes(edited.as_slice()).unwrap();
     let config = ModelConfig::TINY;

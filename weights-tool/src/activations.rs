@@ -1,6 +1,7 @@
 //! Which int8 layers quantize their input to narrow (8-bit) codes, measured: the residual
-//! blocks' convolutions may read one byte a value instead of 15-bit codes (half the trunk's
-//! integer products, docs/QUANTIZATION.md). What that costs depends on the weights, so the
+//! blocks' convolutions, the trunk's and the U-Net's, may read one byte a value instead of
+//! 15-bit codes (half the integer products where whole bytes are multiplied,
+//! docs/QUANTIZATION.md). What that costs depends on the weights, so the
 //! tool measures it on the calibration scenes' actions, against the f32 model with the same
 //! noise draws, and keeps the 15-bit codes only where they are needed to stay within a budget.
 

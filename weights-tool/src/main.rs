@@ -404,7 +404,7 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
     println!("  storage        {quant}");
     if quant == Quant::Int8 {
         println!(
-            "  int8 scheme    convolutions: int8 weights x 15-bit activations (one scale per layer input; two int8 digits in the trunk, i16 in the U-Net), or x 8-bit activations where chosen below; FiLM: int8 weights x 15-bit activations (i16)"
+            "  int8 scheme    convolutions: int8 weights x 15-bit activations (one scale per layer input; two int8 digits in the trunk, i16 in the U-Net), or x 8-bit activations where chosen below (unsigned in the trunk, signed in the U-Net); FiLM: int8 weights x 15-bit activations (i16)"
         );
         match args.rounding {
             RoundingArg::Nearest => println!(

@@ -435,12 +435,15 @@ fn convert_calibrates_int8_rounding_on_scenes() {
         stdout.contains("activations    measured on 3 calibration scenes"),
         "{stdout}"
     );
-    // The tiny trunk's 19 residual-block layers, each with its measured effect and choice.
-    let decided = stdout
-        .lines()
-        .filter(|line| line.contains("alone: max") && line.contains("backbone.layer"))
-        .count();
-    assert_eq!(decided, 19, "{stdout}");
+    // The residual-block layers, each with its measured effect and choice: the trunk's 19
+    // and the U-Net's 24 (12 blocks of two convolutions).
+    for (part, layers) in [("backbone.layer", 19), ("unet.", 24)] {
+        let decided = stdout
+            .lines()
+            .filter(|line| line.contains("alone: max") && line.contains(part))
+            .count();
+        assert_eq!(decided, layers, "{part}: {stdout}");
+    }
 
     // The chosen mix honours the budget it printed: its mean action error at most the
     // allowed fraction above the 15-bit file's, for the default budget and for none at all;
@@ -495,13 +498,13 @@ fn convert_calibrates_int8_rounding_on_scenes() {
     let aligned = weights_tool::writer::aligned_copy(&calibrated);
     scdp_engine::Model::from_bytes(aligned.as_slice()).expect("calibrated file loads");
 
-    // `inspect` lists the layers on 8-bit codes: none in the wide file, all 19 with
+    // `inspect` lists the layers on 8-bit codes: none in the wide file, all 43 with
     // `--activations narrow`.
     let narrow = path("narrow.scdp");
     let narrow_args = [&int8[..], &scenes[..], &["--activations", "narrow"]].concat();
     let output = convert(&narrow_args, &narrow);
     assert!(output.status.success(), "{}", text(&output.stderr));
-    for (file, eight_bit) in [(path("wide.scdp"), 0), (narrow, 19)] {
+    for (file, eight_bit) in [(path("wide.scdp"), 0), (narrow, 43)] {
         let inspect = tool(&["inspect", &file]);
         let report = text(&inspect.stdout);
         assert!(

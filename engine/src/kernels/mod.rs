@@ -290,6 +290,31 @@ pub trait Kernels: Sync {
         accumulate: Accumulate,
     );
 
+    /// [`conv_int8_codes`](Self::conv_int8_codes) on narrow signed codes
+    /// ([`SignedByteRows`]: one signed byte a value, |code| <= 127, rows padded to whole
+    /// quads as [`CodeRows`]' are): the same exact sums (over at most [`MAX_BYTE_TERMS`]
+    /// products), rounding and scaling, so the same bits as `conv_int8_codes` on the same
+    /// codes widened to i16. This default runs the scalar reference; VNNI multiplies whole
+    /// bytes, AVX2 widens them to its 16-bit products.
+    ///
+    /// # Panics
+    /// If a slice is shorter than the contract makes it.
+    #[allow(clippy::too_many_arguments)]
+    fn conv_int8_signed_bytes(
+        &self,
+        shape: &ConvShape,
+        input: &SignedByteRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let parameters = (weight, weight_scales, bias);
+        scalar::assert_signed_byte_lengths(shape, input, parameters, output.len());
+        scalar::conv_int8_signed_bytes(shape, input, parameters, output, accumulate);
+    }
+
     /// [`matvec`](Self::matvec) with int8 weights (row-major `[rows, cols]`, one scale per
     /// row) on the input's 15-bit codes ([`CodeRows`]: one row of `cols` codes, padded to
     /// whole quads, and its scale). The integer sum `S[r] = sum_c code[c] q_w[r, c]` is
@@ -334,6 +359,20 @@ pub trait Kernels: Sync {
     fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
         let row_stride = CodeRows::row_stride(row_len);
         ops::quantize_rows_codes(input, (row_len, row_stride), codes)
+    }
+
+    /// [`ops::quantize_rows_signed_bytes`]: narrow signed quantization of `input`, one scale
+    /// for all of it, rows of `row_len` padded to whole quads ([`SignedByteRows`]), with each
+    /// row's code sum; returns the scale.
+    fn quantize_signed_bytes(
+        &self,
+        input: &[f32],
+        row_len: usize,
+        codes: &mut [i8],
+        row_sums: &mut [i32],
+    ) -> f32 {
+        let row_stride = CodeRows::row_stride(row_len);
+        ops::quantize_rows_signed_bytes(input, (row_len, row_stride), codes, row_sums)
     }
 
     /// [`ops::group_norm`], in place.
@@ -431,6 +470,19 @@ impl CodeRows<'_> {
     pub const fn row_stride(channels: usize) -> usize {
         int8_quads(channels) * QUAD
     }
+}
+
+/// The U-Net's narrow activations ([`ops::quantize_rows_signed_bytes`]): signed 8-bit codes
+/// (|code| <= 127) with one scale for the whole input (`value ~ code * scale`), rows
+/// (positions) padded with zero codes to whole input-channel quads as [`CodeRows`]' are,
+/// and each row's code sum, which lets byte products that take one unsigned side run them
+/// on weights offset by 128 and take the offset's share back out.
+#[derive(Clone, Copy, Debug)]
+pub struct SignedByteRows<'a> {
+    pub codes: &'a [i8],
+    /// `sum_c code[row, c]` per row.
+    pub row_sums: &'a [i32],
+    pub scale: f32,
 }
 
 /// How narrow (8-bit) codes are laid out: one plane of bytes ([`ByteRows`]), or the same
@@ -570,6 +622,32 @@ impl QuantizeScratch<'_> {
         let codes: &mut [i16] = bytemuck::cast_slice_mut(&mut self.values[..2 * rows * row_stride]);
         let scale = kernels.quantize_codes(input, row_len, codes);
         CodeRows { codes, scale }
+    }
+}
+
+impl QuantizeScratch<'_> {
+    /// Quantizes `input`, rows of `row_len` values, to narrow signed codes
+    /// ([`SignedByteRows`]): the row sums at the front, the rows of codes after them. Needs
+    /// no more space than [`quantize_codes`](Self::quantize_codes) (4 bytes a row for its
+    /// sum, at most as many as a row of i16 codes saves), from a 4-byte aligned start (the
+    /// arena's regions are 64-byte aligned).
+    pub fn quantize_signed_bytes(
+        &mut self,
+        kernels: &dyn Kernels,
+        input: &[f32],
+        row_len: usize,
+    ) -> SignedByteRows<'_> {
+        let rows = input.len() / row_len;
+        let row_stride = CodeRows::row_stride(row_len);
+        let (_, words, _) = bytemuck::pod_align_to_mut::<i8, i32>(self.values);
+        let (row_sums, rest) = words.split_at_mut(rows);
+        let codes: &mut [i8] = &mut bytemuck::cast_slice_mut(rest)[..rows * row_stride];
+        let scale = kernels.quantize_signed_bytes(input, row_len, codes, row_sums);
+        SignedByteRows {
+            codes,
+            row_sums,
+            scale,
+        }
     }
 }
 

@@ -577,6 +577,45 @@ pub fn quantize_rows_codes(
     largest / SPLIT_CODE_LIMIT
 }
 
+/// Largest magnitude of the U-Net's narrow codes: a signed byte, symmetric.
+pub const SIGNED_BYTE_CODE_LIMIT: f32 = 127.0;
+
+/// Narrow symmetric quantization of the U-Net's signed activations, one scale for all of
+/// the input: `scale = max |x| / 127`, `code = round(x / scale)` (ties away from zero) in
+/// [-127, 127], one signed byte a value, rows of `row_len` padded with zero codes to
+/// `row_stride` as [`quantize_rows_codes`] pads them; `row_sums[r]` is row `r`'s code sum.
+/// Returns the scale (1 for an all-zero input, NaN for a non-finite one, with zero codes).
+#[inline(always)]
+pub fn quantize_rows_signed_bytes(
+    input: &[f32],
+    (row_len, row_stride): (usize, usize),
+    codes: &mut [i8],
+    row_sums: &mut [i32],
+) -> f32 {
+    let largest = largest_magnitude(input);
+    if let Some(scale) = zero_code_scale(largest) {
+        codes.fill(0);
+        row_sums.fill(0);
+        return scale;
+    }
+    let inverse = SIGNED_BYTE_CODE_LIMIT / largest;
+    let rows = input.chunks_exact(row_len);
+    for ((row, codes), row_sum) in rows.zip(codes.chunks_exact_mut(row_stride)).zip(row_sums) {
+        let (codes, padding) = codes.split_at_mut(row_len);
+        let mut sum = 0;
+        for (code, &x) in codes.iter_mut().zip(row) {
+            // SAFETY: |x * inverse| is at most 127, finite (x is one of the values `largest`
+            // was taken over), and a rounding.
+            let value = unsafe { round_half_away(x * inverse) }.clamp(-127, 127);
+            *code = value as i8;
+            sum += value;
+        }
+        padding.fill(0);
+        *row_sum = sum;
+    }
+    largest / SIGNED_BYTE_CODE_LIMIT
+}
+
 /// Largest code of the narrow activation scheme: one unsigned byte.
 pub const BYTE_CODE_LIMIT: f32 = 255.0;
 

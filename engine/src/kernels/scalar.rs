@@ -3,7 +3,7 @@
 
 use super::{
     Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, Kernels,
-    MAX_BYTE_TERMS, MAX_DIGIT_CHANNELS, MAX_DIGIT_TERMS, NarrowForm, QUAD, ops,
+    MAX_BYTE_TERMS, MAX_DIGIT_CHANNELS, MAX_DIGIT_TERMS, NarrowForm, QUAD, SignedByteRows, ops,
 };
 
 /// Output channels accumulated at once in the int8 kernels (an i32 block on the stack): at
@@ -204,6 +204,37 @@ pub(crate) fn assert_code_lengths(
     assert_eq!(output_len, shape.output_len());
 }
 
+/// The shape and slice lengths [`Kernels::conv_int8_signed_bytes`] promises.
+pub(crate) fn assert_signed_byte_lengths(
+    shape: &ConvShape,
+    input: &SignedByteRows<'_>,
+    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
+    output_len: usize,
+) {
+    let rows = shape.in_height * shape.in_width;
+    assert!(shape.kernel_height * shape.kernel_width * shape.in_channels <= MAX_BYTE_TERMS);
+    assert_eq!(
+        input.codes.len(),
+        rows * CodeRows::row_stride(shape.in_channels)
+    );
+    assert_eq!(input.row_sums.len(), rows);
+    assert_eq!(weight.len(), shape.int8_weight_len());
+    assert_eq!(weight_scales.len(), shape.out_channels);
+    assert_eq!(bias.len(), shape.out_channels);
+    assert_eq!(output_len, shape.output_len());
+}
+
+/// [`Kernels::conv_int8_signed_bytes`] on the reference kernel (lengths unchecked).
+pub(crate) fn conv_int8_signed_bytes(
+    shape: &ConvShape,
+    input: &SignedByteRows<'_>,
+    parameters: (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    conv_int8_map(shape, input, parameters, output, accumulate);
+}
+
 /// The int8 convolution of output `positions` (row-major over the output map), output
 /// `channels` only: the whole reference kernel, and the tails of the SIMD ones.
 pub(crate) fn conv_int8_pixels(
@@ -366,29 +397,60 @@ impl CodeSums for CodeRows<'_> {
         block: usize,
         width: usize,
     ) -> [i32; INT8_BLOCK] {
-        let in_channels = shape.in_channels;
-        let row_stride = CodeRows::row_stride(in_channels);
+        let row_stride = CodeRows::row_stride(shape.in_channels);
         let codes = &self.codes[row * row_stride..][..row_stride];
-        let mut sums = [0i32; INT8_BLOCK];
-        for (quad, codes) in codes.chunks_exact(QUAD).enumerate() {
-            let first = shape.int8_index(tap, quad * QUAD, block);
-            let weights = &weight[first..][..width * QUAD];
-            for (sum, weights) in sums.iter_mut().zip(weights.chunks_exact(QUAD)) {
-                // |code| <= 16383 and |q_w| <= 128: each product and the sum of up to
-                // MAX_DIGIT_CHANNELS of them fit i32.
-                *sum += codes
-                    .iter()
-                    .zip(weights)
-                    .map(|(&code, &w)| code as i32 * w as i32)
-                    .sum::<i32>();
-            }
-        }
-        sums
+        // |code| <= 16383 and |q_w| <= 128: each product and the sum of up to
+        // MAX_DIGIT_CHANNELS of them fit i32.
+        row_code_sums(shape, codes, weight, tap, block, width)
     }
 
     fn scale(&self) -> f32 {
         self.scale
     }
+}
+
+impl CodeSums for SignedByteRows<'_> {
+    fn code_sums(
+        &self,
+        shape: &ConvShape,
+        weight: &[i8],
+        (row, tap): (usize, usize),
+        block: usize,
+        width: usize,
+    ) -> [i32; INT8_BLOCK] {
+        let row_stride = CodeRows::row_stride(shape.in_channels);
+        let codes = &self.codes[row * row_stride..][..row_stride];
+        row_code_sums(shape, codes, weight, tap, block, width)
+    }
+
+    fn scale(&self) -> f32 {
+        self.scale
+    }
+}
+
+/// `sum_c codes[c] q_w[tap, c, o]` of one input row of whole codes (padded to quads) for
+/// the `width` output channels from `block`.
+fn row_code_sums<C: Copy + Into<i32>>(
+    shape: &ConvShape,
+    codes: &[C],
+    weight: &[i8],
+    tap: usize,
+    block: usize,
+    width: usize,
+) -> [i32; INT8_BLOCK] {
+    let mut sums = [0i32; INT8_BLOCK];
+    for (quad, codes) in codes.chunks_exact(QUAD).enumerate() {
+        let first = shape.int8_index(tap, quad * QUAD, block);
+        let weights = &weight[first..][..width * QUAD];
+        for (sum, weights) in sums.iter_mut().zip(weights.chunks_exact(QUAD)) {
+            *sum += codes
+                .iter()
+                .zip(weights)
+                .map(|(&code, &w)| code.into() * i32::from(w))
+                .sum::<i32>();
+        }
+    }
+    sums
 }
 
 /// The column count of [`Kernels::matvec_int8_codes`]' weight for `rows` rows, every length

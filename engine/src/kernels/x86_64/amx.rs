@@ -40,7 +40,9 @@ use super::avx512::Avx512;
 #[cfg(doc)]
 use crate::kernels::int8_quad_index;
 use crate::kernels::ops::Activation;
-use crate::kernels::{Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels};
+use crate::kernels::{
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, SignedByteRows,
+};
 pub use band::TileLayout;
 use band::{BandInput, band, short_sequence_takes, tiles_take};
 use permission::tile_data_permitted;
@@ -409,6 +411,29 @@ impl Kernels for Amx {
         }
     }
 
+    /// VNNI's whole-byte tile: the matrix tiles' signed-by-signed products would take these
+    /// codes directly, untried for want of an AMX machine to test them on.
+    fn conv_int8_signed_bytes(
+        &self,
+        shape: &ConvShape,
+        input: &SignedByteRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        self.avx512.conv_int8_signed_bytes(
+            shape,
+            input,
+            weight,
+            weight_scales,
+            bias,
+            output,
+            accumulate,
+        )
+    }
+
     fn matvec_int8_codes(
         &self,
         weight: &[i8],
@@ -427,6 +452,17 @@ impl Kernels for Amx {
 
     fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
         self.avx512.quantize_codes(input, row_len, codes)
+    }
+
+    fn quantize_signed_bytes(
+        &self,
+        input: &[f32],
+        row_len: usize,
+        codes: &mut [i8],
+        row_sums: &mut [i32],
+    ) -> f32 {
+        self.avx512
+            .quantize_signed_bytes(input, row_len, codes, row_sums)
     }
 
     fn quantize_narrow(

@@ -10,7 +10,7 @@ use super::sequence::{self, Sequence};
 use super::{elementwise, int8};
 use crate::kernels::ops::Activation;
 use crate::kernels::scalar::{Scalar, assert_conv_lengths, assert_conv_pixel_lengths};
-use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels};
+use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels, SignedByteRows};
 
 /// Output pixels per tile and output channels per tile (6 was fastest of 4, 5 and 6 on
 /// the panda layers of `--bench kernels`).

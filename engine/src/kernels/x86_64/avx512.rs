@@ -6,7 +6,9 @@ use super::avx2::Avx2;
 use super::{avx512_f32, elementwise, int8, sequence};
 use crate::kernels::ops::Activation;
 use crate::kernels::scalar::{assert_conv_lengths, assert_conv_pixel_lengths};
-use crate::kernels::{Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, NarrowForm};
+use crate::kernels::{
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, NarrowForm, SignedByteRows,
+};
 
 /// AVX-512 F/BW/VL + VNNI kernels (and AVX2 + FMA). Reachable only through
 /// [`Avx512::detect`], which checks the CPU.

@@ -36,6 +36,18 @@ macro_rules! backend {
                 ops::quantize_rows_codes(input, (row_len, row_stride), codes)
             }
 
+            /// [`ops::quantize_rows_signed_bytes`] on this backend's vectors.
+            #[target_feature(enable = $features)]
+            pub(crate) fn quantize_signed_bytes(
+                input: &[f32],
+                row_len: usize,
+                codes: &mut [i8],
+                row_sums: &mut [i32],
+            ) -> f32 {
+                let row_stride = crate::kernels::CodeRows::row_stride(row_len);
+                ops::quantize_rows_signed_bytes(input, (row_len, row_stride), codes, row_sums)
+            }
+
             /// [`ops::group_norm`] on this backend's vectors.
             #[target_feature(enable = $features)]
             pub(crate) fn group_norm(

@@ -63,6 +63,26 @@ macro_rules! shared_kernels {
             }
         }
 
+        fn conv_int8_signed_bytes(
+            &self,
+            shape: &ConvShape,
+            input: &SignedByteRows<'_>,
+            weight: &[i8],
+            weight_scales: &[f32],
+            bias: &[f32],
+            output: &mut [f32],
+            accumulate: Accumulate,
+        ) {
+            let parameters = (weight, weight_scales, bias);
+            let kernel = int8::$backend::conv_signed_bytes;
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe {
+                int8::checked_conv_signed_bytes(
+                    kernel, shape, input, parameters, output, accumulate,
+                )
+            }
+        }
+
         fn matvec_int8_codes(
             &self,
             weight: &[i8],
@@ -83,6 +103,17 @@ macro_rules! shared_kernels {
         fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
             // SAFETY: `self` exists only on a CPU with the backend's features.
             unsafe { elementwise::$backend::quantize_codes(input, row_len, codes) }
+        }
+
+        fn quantize_signed_bytes(
+            &self,
+            input: &[f32],
+            row_len: usize,
+            codes: &mut [i8],
+            row_sums: &mut [i32],
+        ) -> f32 {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { elementwise::$backend::quantize_signed_bytes(input, row_len, codes, row_sums) }
         }
 
         fn quantize_narrow(

@@ -7,7 +7,7 @@ use crate::kernels::scalar::{CodeSums, conv_int8_pixel, conv_int8_pixels};
 use crate::kernels::x86_64::prefetch_lines_into_l2;
 use crate::kernels::{
     Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, MAX_DIGIT_CHANNELS,
-    QUAD, int8_quad_stride,
+    QUAD, SignedByteRows, int8_quad_stride,
 };
 
 /// Zero codes that a pixel whose kernel tap falls in the padding reads instead of an input
@@ -292,9 +292,111 @@ impl TileInput for ByteRows<'_> {
 /// 1.17-1.19x as long on Zen 4, whose L3 is small enough for the stream to matter).
 const PREFETCH_QUADS: usize = 64;
 
+/// Whole signed codes a tile broadcasts as i16 lane pairs: the U-Net's 15-bit codes, and
+/// its narrow codes on lanes without whole-byte products.
+trait PairCode: Copy {
+    /// One quad of codes from `from` as [`Int8Lanes::broadcast_codes`] lays them out.
+    ///
+    /// # Safety
+    /// The CPU supports `L`; four codes are readable from `from`.
+    unsafe fn broadcast<L: Int8Lanes>(from: *const Self) -> L::Integers;
+}
+
+impl PairCode for i16 {
+    #[inline(always)]
+    unsafe fn broadcast<L: Int8Lanes>(from: *const i16) -> L::Integers {
+        // SAFETY: the caller's promises.
+        unsafe { L::broadcast_codes(from) }
+    }
+}
+
+impl PairCode for i8 {
+    #[inline(always)]
+    unsafe fn broadcast<L: Int8Lanes>(from: *const i8) -> L::Integers {
+        // SAFETY: the caller's promises.
+        unsafe { L::broadcast_byte_codes(from) }
+    }
+}
+
+/// The codes times the widened weights, two lanes a channel, added up per tap in i32
+/// (exact: [`MAX_DIGIT_CHANNELS`]), the taps' sums in f64 (exact), rounded and scaled.
+///
+/// # Safety
+/// As for [`TileInput::tile_totals`]; `codes` are rows of `CodeRows::row_stride(in)`.
+#[inline(always)]
+unsafe fn pair_totals<L: Int8Lanes, C: PairCode, const P: usize, const V: usize>(
+    shape: &ConvShape,
+    (codes, scale): (&[C], f32),
+    weight: &[i8],
+    pixels: &PixelTile<P>,
+    channel: usize,
+) -> [[L::Floats; V]; P] {
+    let row_stride = CodeRows::row_stride(shape.in_channels);
+    let quads = row_stride / QUAD;
+    let quad_stride = int8_quad_stride(shape.out_channels, channel);
+    // SAFETY: the caller runs on `L`'s CPU.
+    let mut totals = [[unsafe { L::zero_exact() }; V]; P];
+    for kernel_y in 0..shape.kernel_height {
+        for kernel_x in 0..shape.kernel_width {
+            let rows = pixels.rows(shape, kernel_y, kernel_x);
+            let Some(sources) = tap_sources(rows, codes, row_stride) else {
+                continue;
+            };
+            let tap = kernel_y * shape.kernel_width + kernel_x;
+            let weights = weight[shape.int8_index(tap, 0, channel)..].as_ptr();
+            // SAFETY: every source holds `quads` whole quads of codes (padded rows, or the
+            // zero row, at least as long); the tap's (zero-padded) quads of the block are
+            // readable: the caller's promises.
+            unsafe {
+                // Per pixel and vector: the halves of its channels (lane pairs).
+                let mut sums = [[(L::zero_integers(), L::zero_integers()); V]; P];
+                for quad in 0..quads {
+                    let row = weights.add(quad * quad_stride);
+                    // The U-Net's weights come from L3 once per step, a quad row's
+                    // `V WIDTH` channels (one or two cache lines) `quad_stride` bytes apart:
+                    // ask L2 for the lines `PREFETCH_QUADS` rows ahead. A hint only (it
+                    // never faults), hence the wrapping address.
+                    let ahead = row.wrapping_add(PREFETCH_QUADS * quad_stride);
+                    prefetch_lines_into_l2(ahead, V * L::WIDTH * QUAD);
+                    let halves: [(L::Integers, L::Integers); V] = core::array::from_fn(|vector| {
+                        let first = row.add(vector * L::WIDTH * QUAD);
+                        (
+                            L::widen_quads(first),
+                            L::widen_quads(first.add(L::WIDTH * QUAD / 2)),
+                        )
+                    });
+                    for pixel in 0..P {
+                        let broadcast = C::broadcast::<L>(sources[pixel].add(quad * QUAD));
+                        for vector in 0..V {
+                            let (low, high) = &mut sums[pixel][vector];
+                            *low = L::dot_code_pairs(*low, broadcast, halves[vector].0);
+                            *high = L::dot_code_pairs(*high, broadcast, halves[vector].1);
+                        }
+                    }
+                }
+                for pixel in 0..P {
+                    for vector in 0..V {
+                        let (low, high) = sums[pixel][vector];
+                        let total = &mut totals[pixel][vector];
+                        *total = L::add_exact(*total, L::add_lane_pairs(low, high));
+                    }
+                }
+            }
+        }
+    }
+    // SAFETY: the caller runs on `L`'s CPU.
+    let mut rounded = [[unsafe { L::zero_floats() }; V]; P];
+    for pixel in 0..P {
+        for vector in 0..V {
+            // SAFETY: the caller runs on `L`'s CPU.
+            rounded[pixel][vector] = unsafe { L::round_scaled(totals[pixel][vector], scale) };
+        }
+    }
+    rounded
+}
+
 impl TileInput for CodeRows<'_> {
-    /// The codes times the widened weights, two lanes a channel, added up per tap in i32
-    /// (exact: [`MAX_DIGIT_CHANNELS`]), the taps' sums in f64 (exact).
+    /// [`pair_totals`] of the 15-bit codes.
     #[inline(always)]
     unsafe fn tile_totals<L: Int8Lanes, const P: usize, const V: usize>(
         &self,
@@ -303,70 +405,89 @@ impl TileInput for CodeRows<'_> {
         pixels: &PixelTile<P>,
         channel: usize,
     ) -> [[L::Floats; V]; P] {
+        // SAFETY: the caller's promises, passed on.
+        unsafe {
+            pair_totals::<L, i16, P, V>(shape, (self.codes, self.scale), weight, pixels, channel)
+        }
+    }
+}
+
+impl TileInput for SignedByteRows<'_> {
+    /// On lanes with whole-byte products, the weights offset by 128 (unsigned) times the
+    /// signed codes, summed over the whole kernel in i32 (exact: at most
+    /// [`MAX_BYTE_TERMS`](crate::kernels::MAX_BYTE_TERMS) products of 255 x 127), less 128
+    /// times the codes the pixel read (its rows' sums): `sum (w + 128) c - 128 sum c`, the
+    /// exact `sum w c`, in half the products of widened pairs. Elsewhere [`pair_totals`] of
+    /// the bytes.
+    #[inline(always)]
+    unsafe fn tile_totals<L: Int8Lanes, const P: usize, const V: usize>(
+        &self,
+        shape: &ConvShape,
+        weight: &[i8],
+        pixels: &PixelTile<P>,
+        channel: usize,
+    ) -> [[L::Floats; V]; P] {
+        if !L::WHOLE_BYTES {
+            // SAFETY: the caller's promises, passed on.
+            return unsafe {
+                pair_totals::<L, i8, P, V>(shape, (self.codes, self.scale), weight, pixels, channel)
+            };
+        }
         let row_stride = CodeRows::row_stride(shape.in_channels);
         let quads = row_stride / QUAD;
         let quad_stride = int8_quad_stride(shape.out_channels, channel);
         // SAFETY: the caller runs on `L`'s CPU.
-        let mut totals = [[unsafe { L::zero_exact() }; V]; P];
+        let mut sums = [[unsafe { L::zero_integers() }; V]; P];
+        let mut codes_read = [0i32; P];
         for kernel_y in 0..shape.kernel_height {
             for kernel_x in 0..shape.kernel_width {
                 let rows = pixels.rows(shape, kernel_y, kernel_x);
-                let Some(codes) = tap_sources(rows, self.codes, row_stride) else {
+                let Some(sources) = tap_sources(rows, self.codes, row_stride) else {
                     continue;
                 };
+                for (read, row) in codes_read.iter_mut().zip(rows) {
+                    *read += row.map_or(0, |row| self.row_sums[row]);
+                }
                 let tap = kernel_y * shape.kernel_width + kernel_x;
                 let weights = weight[shape.int8_index(tap, 0, channel)..].as_ptr();
-                // SAFETY: every source holds `quads` whole quads of codes (padded rows,
-                // `CodeRows`, or the zero row, at least as long); the tap's (zero-padded)
-                // quads of the block are readable: the caller's promises.
+                // SAFETY: every source holds `quads` whole quads of codes (padded rows, or
+                // the zero row, at least as long); the tap's (zero-padded) quads of the
+                // block are readable: the caller's promises.
                 unsafe {
-                    // Per pixel and vector: the halves of its channels (lane pairs).
-                    let mut sums = [[(L::zero_integers(), L::zero_integers()); V]; P];
                     for quad in 0..quads {
                         let row = weights.add(quad * quad_stride);
-                        // The U-Net's weights come from L3 once per step, a quad row's
-                        // `V WIDTH` channels (one or two cache lines) `quad_stride` bytes
-                        // apart: ask L2 for the lines `PREFETCH_QUADS` rows ahead. A hint only
-                        // (it never faults), hence the wrapping address.
+                        // As in `pair_totals`: the weights come from L3 at every step.
                         let ahead = row.wrapping_add(PREFETCH_QUADS * quad_stride);
                         prefetch_lines_into_l2(ahead, V * L::WIDTH * QUAD);
-                        let halves: [(L::Integers, L::Integers); V] =
-                            core::array::from_fn(|vector| {
-                                let first = row.add(vector * L::WIDTH * QUAD);
-                                (
-                                    L::widen_quads(first),
-                                    L::widen_quads(first.add(L::WIDTH * QUAD / 2)),
-                                )
-                            });
+                        let vectors: [L::Integers; V] = core::array::from_fn(|vector| {
+                            L::offset_bytes(L::load_weights(row.add(vector * L::WIDTH * QUAD)))
+                        });
                         for pixel in 0..P {
-                            let broadcast = L::broadcast_codes(codes[pixel].add(quad * QUAD));
+                            let broadcast = L::broadcast_quad(sources[pixel].add(quad * QUAD));
                             for vector in 0..V {
-                                let (low, high) = &mut sums[pixel][vector];
-                                *low = L::dot_code_pairs(*low, broadcast, halves[vector].0);
-                                *high = L::dot_code_pairs(*high, broadcast, halves[vector].1);
+                                sums[pixel][vector] =
+                                    L::dot_quads(sums[pixel][vector], vectors[vector], broadcast);
                             }
-                        }
-                    }
-                    for pixel in 0..P {
-                        for vector in 0..V {
-                            let (low, high) = sums[pixel][vector];
-                            let total = &mut totals[pixel][vector];
-                            *total = L::add_exact(*total, L::add_lane_pairs(low, high));
                         }
                     }
                 }
             }
         }
         // SAFETY: the caller runs on `L`'s CPU.
-        let mut rounded = [[unsafe { L::zero_floats() }; V]; P];
+        let mut totals = [[unsafe { L::zero_floats() }; V]; P];
         for pixel in 0..P {
+            // At most 127 x MAX_BYTE_TERMS x 128 in magnitude: no overflow.
+            // SAFETY: the caller runs on `L`'s CPU.
+            let offset = unsafe { L::splat_integers(-128 * codes_read[pixel]) };
             for vector in 0..V {
-                // SAFETY: the caller runs on `L`'s CPU.
-                rounded[pixel][vector] =
-                    unsafe { L::round_scaled(totals[pixel][vector], self.scale) };
+                // SAFETY: the caller runs on `L`'s CPU; i32 sums are exact in f64.
+                totals[pixel][vector] = unsafe {
+                    let exact = L::add_integers(sums[pixel][vector], offset);
+                    L::round_scaled(L::add_exact(L::zero_exact(), exact), self.scale)
+                };
             }
         }
-        rounded
+        totals
     }
 }
 
