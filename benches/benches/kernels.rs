@@ -9,7 +9,9 @@ use std::time::Duration;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use scdp_engine::Backend;
-use scdp_engine::kernels::{Accumulate, ConvShape, DigitRows, Kernels, pack_int8_quads, select};
+use scdp_engine::kernels::{
+    Accumulate, ByteRows, ConvShape, DigitRows, Kernels, pack_int8_quads, select,
+};
 use weights_tool::writer::AlignedBytes;
 
 /// `(name, shape)` of the distinct int8 convolutions of one panda frame.
@@ -90,6 +92,23 @@ fn benches(c: &mut Criterion) {
             kernels.conv_int8(
                 &shape,
                 black_box(&input),
+                packed,
+                &weight_scales,
+                &bias,
+                &mut output,
+                Accumulate::Overwrite,
+            )
+        });
+        // The same layer on 8-bit codes, as the fast file's residual blocks read them (the
+        // high plane stands in for a byte a value).
+        let bytes = ByteRows {
+            bytes: &planes.as_slice()[..shape.input_len()],
+            scale: 0.01,
+        };
+        on_every_backend(c, format!("conv_int8_bytes/{name}"), &shape, |kernels| {
+            kernels.conv_int8_bytes(
+                &shape,
+                black_box(&bytes),
                 packed,
                 &weight_scales,
                 &bias,

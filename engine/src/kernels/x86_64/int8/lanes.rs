@@ -6,19 +6,19 @@ use core::arch::x86_64::{
     __m256, __m256d, __m256i, __m512, __m512d, __m512i, _mm_cvtepi8_epi16, _mm_cvtsi32_si128,
     _mm_loadu_si128, _mm256_add_epi32, _mm256_add_pd, _mm256_add_ps, _mm256_broadcastq_epi64,
     _mm256_castps_pd, _mm256_castsi256_si128, _mm256_cvtepi8_epi16, _mm256_cvtepi32_pd,
-    _mm256_cvtpd_ps, _mm256_extracti128_si256, _mm256_hadd_epi32, _mm256_loadu_ps,
-    _mm256_loadu_si256, _mm256_madd_epi16, _mm256_maddubs_epi16, _mm256_mul_pd, _mm256_mul_ps,
-    _mm256_permute4x64_epi64, _mm256_set_m128, _mm256_set1_epi8, _mm256_set1_epi16,
+    _mm256_cvtepi32_ps, _mm256_cvtpd_ps, _mm256_extracti128_si256, _mm256_hadd_epi32,
+    _mm256_loadu_ps, _mm256_loadu_si256, _mm256_madd_epi16, _mm256_maddubs_epi16, _mm256_mul_pd,
+    _mm256_mul_ps, _mm256_permute4x64_epi64, _mm256_set_m128, _mm256_set1_epi8, _mm256_set1_epi16,
     _mm256_set1_epi32, _mm256_set1_epi64x, _mm256_set1_pd, _mm256_set1_ps, _mm256_setzero_pd,
     _mm256_setzero_ps, _mm256_setzero_si256, _mm256_storeu_ps, _mm256_storeu_si256,
     _mm256_xor_si256, _mm512_add_epi32, _mm512_add_pd, _mm512_add_ps, _mm512_broadcastq_epi64,
     _mm512_castpd_ps, _mm512_castpd256_pd512, _mm512_castsi512_si256, _mm512_cvtepi8_epi16,
-    _mm512_cvtepi32_pd, _mm512_cvtpd_ps, _mm512_dpbusd_epi32, _mm512_dpwssd_epi32,
-    _mm512_extracti64x4_epi64, _mm512_insertf64x4, _mm512_loadu_ps, _mm512_loadu_si512,
-    _mm512_mul_pd, _mm512_mul_ps, _mm512_permutex2var_epi32, _mm512_set1_epi8, _mm512_set1_epi32,
-    _mm512_set1_epi64, _mm512_set1_pd, _mm512_set1_ps, _mm512_setr_epi32, _mm512_setzero_pd,
-    _mm512_setzero_ps, _mm512_setzero_si512, _mm512_storeu_ps, _mm512_storeu_si512,
-    _mm512_xor_si512,
+    _mm512_cvtepi32_pd, _mm512_cvtepi32_ps, _mm512_cvtpd_ps, _mm512_dpbusd_epi32,
+    _mm512_dpwssd_epi32, _mm512_extracti64x4_epi64, _mm512_insertf64x4, _mm512_loadu_ps,
+    _mm512_loadu_si512, _mm512_mul_pd, _mm512_mul_ps, _mm512_permutex2var_epi32, _mm512_set1_epi8,
+    _mm512_set1_epi32, _mm512_set1_epi64, _mm512_set1_pd, _mm512_set1_ps, _mm512_setr_epi32,
+    _mm512_setzero_pd, _mm512_setzero_ps, _mm512_setzero_si512, _mm512_storeu_ps,
+    _mm512_storeu_si512, _mm512_xor_si512,
 };
 
 use crate::kernels::ops;
@@ -94,6 +94,10 @@ pub(crate) unsafe trait Int8Lanes {
     unsafe fn exact_digits(high: Self::Integers, low: Self::Integers) -> Self::Exact;
     /// The exact integers rounded to f32 (to nearest), times `scale`: two roundings.
     unsafe fn round_scaled(total: Self::Exact, scale: f32) -> Self::Floats;
+    /// i32 sums rounded to f32 (to nearest), times `scale`: the bits of
+    /// [`round_scaled`](Int8Lanes::round_scaled) of the same sums (an i32 is exact in f64),
+    /// in one conversion where that takes five.
+    unsafe fn integers_scaled(sums: Self::Integers, scale: f32) -> Self::Floats;
     unsafe fn load(from: *const f32) -> Self::Floats;
     unsafe fn store(to: *mut f32, value: Self::Floats);
     unsafe fn mul(a: Self::Floats, b: Self::Floats) -> Self::Floats;
@@ -237,6 +241,11 @@ unsafe impl Int8Lanes for PairSumsYmm {
                 _mm256_add_pd(_mm256_mul_pd(high.1, base), low.1),
             )
         }
+    }
+    #[inline(always)]
+    unsafe fn integers_scaled(sums: __m256i, scale: f32) -> __m256 {
+        // SAFETY: the caller runs on AVX2 (trait contract). `vcvtdq2ps` rounds as MXCSR says.
+        unsafe { _mm256_mul_ps(_mm256_cvtepi32_ps(sums), _mm256_set1_ps(scale)) }
     }
     #[inline(always)]
     unsafe fn round_scaled(total: (__m256d, __m256d), scale: f32) -> __m256 {
@@ -383,6 +392,11 @@ unsafe impl Int8Lanes for VnniZmm {
     unsafe fn exact_digits(high: __m512i, low: __m512i) -> (__m512d, __m512d) {
         // SAFETY: the caller runs on AVX-512F (trait contract). As for AVX2.
         unsafe { exact_digits_zmm(high, low) }
+    }
+    #[inline(always)]
+    unsafe fn integers_scaled(sums: __m512i, scale: f32) -> __m512 {
+        // SAFETY: the caller runs on AVX-512F (trait contract). As for AVX2.
+        unsafe { _mm512_mul_ps(_mm512_cvtepi32_ps(sums), _mm512_set1_ps(scale)) }
     }
     #[inline(always)]
     unsafe fn round_scaled(total: (__m512d, __m512d), scale: f32) -> __m512 {

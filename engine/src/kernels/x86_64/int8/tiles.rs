@@ -276,11 +276,9 @@ impl TileInput for ByteRows<'_> {
         let mut totals = [[unsafe { L::zero_floats() }; V]; P];
         for pixel in 0..P {
             for vector in 0..V {
-                // SAFETY: the caller runs on `L`'s CPU; i32 sums are exact in f64.
-                totals[pixel][vector] = unsafe {
-                    let exact = L::add_exact(L::zero_exact(), sums[pixel][vector]);
-                    L::round_scaled(exact, self.scale)
-                };
+                // SAFETY: the caller runs on `L`'s CPU.
+                totals[pixel][vector] =
+                    unsafe { L::integers_scaled(sums[pixel][vector], self.scale) };
             }
         }
         totals
@@ -480,10 +478,9 @@ impl TileInput for SignedByteRows<'_> {
             // SAFETY: the caller runs on `L`'s CPU.
             let offset = unsafe { L::splat_integers(-128 * codes_read[pixel]) };
             for vector in 0..V {
-                // SAFETY: the caller runs on `L`'s CPU; i32 sums are exact in f64.
+                // SAFETY: the caller runs on `L`'s CPU.
                 totals[pixel][vector] = unsafe {
-                    let exact = L::add_integers(sums[pixel][vector], offset);
-                    L::round_scaled(L::add_exact(L::zero_exact(), exact), self.scale)
+                    L::integers_scaled(L::add_integers(sums[pixel][vector], offset), self.scale)
                 };
             }
         }
