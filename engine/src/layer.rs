@@ -47,8 +47,15 @@ pub fn convolve(
             },
             Activations::Codes(scratch),
         ) => {
-            let codes = scratch.quantize_signed_bytes(kernels, input, shape.in_channels);
-            kernels.conv_int8_signed_bytes(shape, &codes, values, scales, bias, output, accumulate)
+            let channels = shape.in_channels;
+            if kernels.multiplies_signed_bytes() {
+                let codes = scratch.quantize_signed_bytes(kernels, input, channels);
+                kernels
+                    .conv_int8_signed_bytes(shape, &codes, values, scales, bias, output, accumulate)
+            } else {
+                let codes = scratch.quantize_narrow_codes(kernels, input, channels);
+                kernels.conv_int8_codes(shape, &codes, values, scales, bias, output, accumulate)
+            }
         }
         (Weight::Int8 { values, scales, .. }, Activations::Codes(scratch)) => {
             let codes = scratch.quantize_codes(kernels, input, shape.in_channels);

@@ -7,6 +7,8 @@ use scdp_engine::kernels::ops::{self, Activation};
 use scdp_engine::kernels::scalar::Scalar;
 #[cfg(target_arch = "x86_64")]
 use scdp_engine::kernels::x86_64::amx::{Amx, TileLayout};
+use scdp_engine::layer;
+use scdp_engine::weights::{ActivationCodes, Weight};
 /// Elsewhere no tile layout runs: `check_on_tiles` reports `None`.
 #[cfg(not(target_arch = "x86_64"))]
 type TileLayout = ();
@@ -786,7 +788,9 @@ fn narrow_signed_code_convolution_equals_the_code_convolution_on_every_backend()
                 assert_same_bits(&found, &expected, &what);
             }
         }
-        // The model's path: each backend quantizes the same input and convolves it.
+        // The model's path (`layer::convolve` of a narrow layer): each backend quantizes
+        // the same input, as signed bytes or (AVX2) as the same codes widened to 16 bits,
+        // and convolves it.
         let values: Vec<f32> = rng.vec(shape.input_len()).iter().map(|x| x * 3.0).collect();
         let convolve = |kernels: &dyn Kernels| {
             let mut scratch =
@@ -794,18 +798,21 @@ fn narrow_signed_code_convolution_equals_the_code_convolution_on_every_backend()
             let mut quantize = QuantizeScratch {
                 values: &mut scratch,
             };
-            let codes = quantize.quantize_signed_bytes(kernels, &values, shape.in_channels);
             let mut output = vec![0.0; shape.output_len()];
-            let (packed, scales, bias) =
-                (&code_case.packed, &code_case.weight_scales, &code_case.bias);
-            kernels.conv_int8_signed_bytes(
+            let weight = Weight::Int8 {
+                values: &code_case.packed,
+                scales: &code_case.weight_scales,
+                activations: ActivationCodes::Narrow,
+            };
+            layer::convolve(
+                kernels,
                 &shape,
-                &codes,
-                packed,
-                scales,
-                bias,
+                &values,
+                &weight,
+                &code_case.bias,
                 &mut output,
                 Accumulate::Overwrite,
+                layer::Activations::Codes(&mut quantize),
             );
             output
         };

@@ -375,6 +375,24 @@ pub trait Kernels: Sync {
         ops::quantize_rows_signed_bytes(input, (row_len, row_stride), codes, row_sums)
     }
 
+    /// [`ops::quantize_rows_narrow_codes`]: the codes of
+    /// [`quantize_signed_bytes`](Self::quantize_signed_bytes) as whole 16-bit codes
+    /// ([`CodeRows`]); returns the scale.
+    fn quantize_narrow_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
+        let row_stride = CodeRows::row_stride(row_len);
+        ops::quantize_rows_narrow_codes(input, (row_len, row_stride), codes)
+    }
+
+    /// Whether this implementation multiplies the U-Net's narrow codes fastest as signed
+    /// bytes ([`conv_int8_signed_bytes`](Self::conv_int8_signed_bytes), the default) or
+    /// widened to 16 bits once, as they are quantized
+    /// ([`quantize_narrow_codes`](Self::quantize_narrow_codes) and
+    /// [`conv_int8_codes`](Self::conv_int8_codes)): the same codes, exact sums and
+    /// roundings, so the same bits.
+    fn multiplies_signed_bytes(&self) -> bool {
+        true
+    }
+
     /// [`ops::group_norm`], in place.
     fn group_norm(
         &self,
@@ -626,6 +644,21 @@ impl QuantizeScratch<'_> {
 }
 
 impl QuantizeScratch<'_> {
+    /// Quantizes `input`, rows of `row_len` values, to narrow signed codes kept as whole
+    /// 16-bit codes ([`Kernels::quantize_narrow_codes`]) in the same bytes.
+    pub fn quantize_narrow_codes(
+        &mut self,
+        kernels: &dyn Kernels,
+        input: &[f32],
+        row_len: usize,
+    ) -> CodeRows<'_> {
+        let rows = input.len() / row_len;
+        let row_stride = CodeRows::row_stride(row_len);
+        let codes: &mut [i16] = bytemuck::cast_slice_mut(&mut self.values[..2 * rows * row_stride]);
+        let scale = kernels.quantize_narrow_codes(input, row_len, codes);
+        CodeRows { codes, scale }
+    }
+
     /// Quantizes `input`, rows of `row_len` values, to narrow signed codes
     /// ([`SignedByteRows`]): the row sums at the front, the rows of codes after them. Needs
     /// no more space than [`quantize_codes`](Self::quantize_codes) (4 bytes a row for its

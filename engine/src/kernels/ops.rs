@@ -616,6 +616,35 @@ pub fn quantize_rows_signed_bytes(
     largest / SIGNED_BYTE_CODE_LIMIT
 }
 
+/// The codes of [`quantize_rows_signed_bytes`] (the same scale and values) kept as i16
+/// rows, as [`quantize_rows_codes`] lays them out, for 16-bit products that would widen
+/// bytes anyway (AVX2's), without the row sums.
+#[inline(always)]
+pub fn quantize_rows_narrow_codes(
+    input: &[f32],
+    (row_len, row_stride): (usize, usize),
+    codes: &mut [i16],
+) -> f32 {
+    let largest = largest_magnitude(input);
+    if let Some(scale) = zero_code_scale(largest) {
+        codes.fill(0);
+        return scale;
+    }
+    let inverse = SIGNED_BYTE_CODE_LIMIT / largest;
+    for (row, codes) in input
+        .chunks_exact(row_len)
+        .zip(codes.chunks_exact_mut(row_stride))
+    {
+        let (codes, padding) = codes.split_at_mut(row_len);
+        for (code, &x) in codes.iter_mut().zip(row) {
+            // SAFETY: as in `quantize_rows_signed_bytes`.
+            *code = unsafe { round_half_away(x * inverse) }.clamp(-127, 127) as i16;
+        }
+        padding.fill(0);
+    }
+    largest / SIGNED_BYTE_CODE_LIMIT
+}
+
 /// Largest code of the narrow activation scheme: one unsigned byte.
 pub const BYTE_CODE_LIMIT: f32 = 255.0;
 

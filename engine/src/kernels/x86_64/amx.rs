@@ -454,6 +454,10 @@ impl Kernels for Amx {
         self.avx512.quantize_codes(input, row_len, codes)
     }
 
+    fn quantize_narrow_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
+        self.avx512.quantize_narrow_codes(input, row_len, codes)
+    }
+
     fn quantize_signed_bytes(
         &self,
         input: &[f32],

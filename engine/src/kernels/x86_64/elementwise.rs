@@ -36,6 +36,17 @@ macro_rules! backend {
                 ops::quantize_rows_codes(input, (row_len, row_stride), codes)
             }
 
+            /// [`ops::quantize_rows_narrow_codes`] on this backend's vectors.
+            #[target_feature(enable = $features)]
+            pub(crate) fn quantize_narrow_codes(
+                input: &[f32],
+                row_len: usize,
+                codes: &mut [i16],
+            ) -> f32 {
+                let row_stride = crate::kernels::CodeRows::row_stride(row_len);
+                ops::quantize_rows_narrow_codes(input, (row_len, row_stride), codes)
+            }
+
             /// [`ops::quantize_rows_signed_bytes`] on this backend's vectors.
             #[target_feature(enable = $features)]
             pub(crate) fn quantize_signed_bytes(

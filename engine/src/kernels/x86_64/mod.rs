@@ -105,6 +105,11 @@ macro_rules! shared_kernels {
             unsafe { elementwise::$backend::quantize_codes(input, row_len, codes) }
         }
 
+        fn quantize_narrow_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { elementwise::$backend::quantize_narrow_codes(input, row_len, codes) }
+        }
+
         fn quantize_signed_bytes(
             &self,
             input: &[f32],
