@@ -635,11 +635,9 @@ impl QuantizeScratch<'_> {
         input: &[f32],
         row_len: usize,
     ) -> CodeRows<'_> {
-        let rows = input.len() / row_len;
-        let row_stride = CodeRows::row_stride(row_len);
-        let codes: &mut [i16] = bytemuck::cast_slice_mut(&mut self.values[..2 * rows * row_stride]);
-        let scale = kernels.quantize_codes(input, row_len, codes);
-        CodeRows { codes, scale }
+        self.whole_codes(input, row_len, |input, codes| {
+            kernels.quantize_codes(input, row_len, codes)
+        })
     }
 }
 
@@ -652,10 +650,23 @@ impl QuantizeScratch<'_> {
         input: &[f32],
         row_len: usize,
     ) -> CodeRows<'_> {
+        self.whole_codes(input, row_len, |input, codes| {
+            kernels.quantize_narrow_codes(input, row_len, codes)
+        })
+    }
+
+    /// The rows of i16 codes `quantize` writes for `input` (returning their scale), at the
+    /// front of this scratch.
+    fn whole_codes(
+        &mut self,
+        input: &[f32],
+        row_len: usize,
+        quantize: impl FnOnce(&[f32], &mut [i16]) -> f32,
+    ) -> CodeRows<'_> {
         let rows = input.len() / row_len;
         let row_stride = CodeRows::row_stride(row_len);
         let codes: &mut [i16] = bytemuck::cast_slice_mut(&mut self.values[..2 * rows * row_stride]);
-        let scale = kernels.quantize_narrow_codes(input, row_len, codes);
+        let scale = quantize(input, codes);
         CodeRows { codes, scale }
     }
 

@@ -552,29 +552,41 @@ pub fn quantize_split_signs(input: &[f32], high: &mut [i8], low: &mut [i8]) -> (
 /// signed, for 16-bit integer dot products). Returns the scale (1 for an all-zero input,
 /// NaN for a non-finite one, with zero codes).
 #[inline(always)]
-pub fn quantize_rows_codes(
+pub fn quantize_rows_codes(input: &[f32], rows: (usize, usize), codes: &mut [i16]) -> f32 {
+    quantize_rows_whole(input, rows, codes, SPLIT_CODE_LIMIT)
+}
+
+/// Symmetric quantization to whole codes of at most `limit` in magnitude (an integer below
+/// 2^15), rows of `row_len` values into rows of `row_stride` i16 codes, the padding 0;
+/// returns the scale, `max |x| / limit` (1 for an all-zero input, NaN for a non-finite one,
+/// with zero codes).
+#[inline(always)]
+fn quantize_rows_whole(
     input: &[f32],
     (row_len, row_stride): (usize, usize),
     codes: &mut [i16],
+    limit: f32,
 ) -> f32 {
     let largest = largest_magnitude(input);
     if let Some(scale) = zero_code_scale(largest) {
         codes.fill(0);
         return scale;
     }
-    let inverse = SPLIT_CODE_LIMIT / largest;
+    let inverse = limit / largest;
+    let bound = limit as i32;
     for (row, codes) in input
         .chunks_exact(row_len)
         .zip(codes.chunks_exact_mut(row_stride))
     {
         let (codes, padding) = codes.split_at_mut(row_len);
         for (code, &x) in codes.iter_mut().zip(row) {
-            // SAFETY: as in `quantize_split_signs`.
-            *code = unsafe { split_code(x, inverse) } as i16;
+            // SAFETY: |x * inverse| is at most `limit` (x is one of the values `largest` was
+            // taken over), finite, and a rounding.
+            *code = unsafe { round_half_away(x * inverse) }.clamp(-bound, bound) as i16;
         }
         padding.fill(0);
     }
-    largest / SPLIT_CODE_LIMIT
+    largest / limit
 }
 
 /// Largest magnitude of the U-Net's narrow codes: a signed byte, symmetric.
@@ -620,29 +632,8 @@ pub fn quantize_rows_signed_bytes(
 /// rows, as [`quantize_rows_codes`] lays them out, for 16-bit products that would widen
 /// bytes anyway (AVX2's), without the row sums.
 #[inline(always)]
-pub fn quantize_rows_narrow_codes(
-    input: &[f32],
-    (row_len, row_stride): (usize, usize),
-    codes: &mut [i16],
-) -> f32 {
-    let largest = largest_magnitude(input);
-    if let Some(scale) = zero_code_scale(largest) {
-        codes.fill(0);
-        return scale;
-    }
-    let inverse = SIGNED_BYTE_CODE_LIMIT / largest;
-    for (row, codes) in input
-        .chunks_exact(row_len)
-        .zip(codes.chunks_exact_mut(row_stride))
-    {
-        let (codes, padding) = codes.split_at_mut(row_len);
-        for (code, &x) in codes.iter_mut().zip(row) {
-            // SAFETY: as in `quantize_rows_signed_bytes`.
-            *code = unsafe { round_half_away(x * inverse) }.clamp(-127, 127) as i16;
-        }
-        padding.fill(0);
-    }
-    largest / SIGNED_BYTE_CODE_LIMIT
+pub fn quantize_rows_narrow_codes(input: &[f32], rows: (usize, usize), codes: &mut [i16]) -> f32 {
+    quantize_rows_whole(input, rows, codes, SIGNED_BYTE_CODE_LIMIT)
 }
 
 /// Largest code of the narrow activation scheme: one unsigned byte.
