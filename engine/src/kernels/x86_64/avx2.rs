@@ -10,7 +10,7 @@ use super::sequence::{self, Sequence};
 use super::{elementwise, int8};
 use crate::kernels::ops::Activation;
 use crate::kernels::scalar::{Scalar, assert_conv_lengths, assert_conv_pixel_lengths};
-use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels, SignedByteRows};
+use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels};
 
 /// Output pixels per tile and output channels per tile (6 was fastest of 4, 5 and 6 on
 /// the panda layers of `--bench kernels`).
@@ -69,7 +69,8 @@ impl Kernels for Avx2 {
     }
 
     /// `vpmaddwd` takes 16-bit codes: bytes widened once, as they are quantized, not at
-    /// every broadcast (the panda denoising loop 1.15-1.19x as long that way).
+    /// every broadcast (the panda denoising loop 1.13-1.23x as long that way), so AVX2 has
+    /// no signed-byte tile and `conv_int8_signed_bytes` is the scalar reference's.
     fn multiplies_signed_bytes(&self) -> bool {
         false
     }

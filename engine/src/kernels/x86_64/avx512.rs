@@ -98,6 +98,21 @@ impl Kernels for Avx512 {
         unsafe { int8::checked_conv_bytes(shape, input, parameters, output, accumulate) }
     }
 
+    fn conv_int8_signed_bytes(
+        &self,
+        shape: &ConvShape,
+        input: &SignedByteRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let parameters = (weight, weight_scales, bias);
+        // SAFETY: `self` exists only when AVX-512 F/BW/VL and VNNI were detected.
+        unsafe { int8::checked_conv_signed_bytes(shape, input, parameters, output, accumulate) }
+    }
+
     /// `vpdpbusd` multiplies whole bytes.
     fn narrow_form(&self) -> NarrowForm {
         NarrowForm::Bytes

@@ -68,13 +68,12 @@ const VNNI_CODES_TILE: (usize, usize) = (4, 2);
 /// [`conv`] and [`conv_pixel`] compiled for one backend: the thin `#[target_feature]`
 /// wrappers of the shared body.
 macro_rules! backend {
-    ($module:ident, $lanes:ty, $tile:expr, $codes_tile:expr, $signed_tile:expr, $features:literal) => {
+    ($module:ident, $lanes:ty, $tile:expr, $codes_tile:expr, $features:literal) => {
         pub(crate) mod $module {
-            use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, SignedByteRows};
+            use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows};
 
             const TILE: (usize, usize) = $tile;
             const CODES_TILE: (usize, usize) = $codes_tile;
-            const SIGNED_BYTES_TILE: (usize, usize) = $signed_tile;
 
             /// [`matvec_codes`](super::matvec_codes) on this backend.
             ///
@@ -107,27 +106,6 @@ macro_rules! backend {
                 // SAFETY: this function's contract is the body's.
                 unsafe {
                     super::conv::<$lanes, CodeRows<'_>, { CODES_TILE.0 }, { CODES_TILE.1 }>(
-                        shape, input, parameters, output, accumulate,
-                    )
-                }
-            }
-
-            /// [`conv`](super::conv) of narrow signed codes on this backend.
-            ///
-            /// # Safety
-            /// The CPU supports the backend's features; otherwise as for the body.
-            #[target_feature(enable = $features)]
-            pub(crate) unsafe fn conv_signed_bytes(
-                shape: &ConvShape,
-                input: &SignedByteRows<'_>,
-                parameters: (&[i8], &[f32], &[f32]),
-                output: &mut [f32],
-                accumulate: Accumulate,
-            ) {
-                const TILE: (usize, usize) = SIGNED_BYTES_TILE;
-                // SAFETY: this function's contract is the body's.
-                unsafe {
-                    super::conv::<$lanes, SignedByteRows<'_>, { TILE.0 }, { TILE.1 }>(
                         shape, input, parameters, output, accumulate,
                     )
                 }
@@ -179,7 +157,6 @@ backend!(
     super::PairSumsYmm,
     super::AVX2_TILE,
     super::AVX2_CODES_TILE,
-    super::AVX2_CODES_TILE,
     "avx2,fma"
 );
 backend!(
@@ -187,7 +164,6 @@ backend!(
     super::VnniZmm,
     super::VNNI_TILE,
     super::VNNI_CODES_TILE,
-    super::VNNI_BYTES_TILE,
     "avx512f,avx512bw,avx512vl,avx512vnni"
 );
 
@@ -231,10 +207,6 @@ pub(crate) type ConvKernel =
 /// A backend's [`conv`] wrapper for signed codes.
 pub(crate) type CodesKernel =
     unsafe fn(&ConvShape, &CodeRows<'_>, (&[i8], &[f32], &[f32]), &mut [f32], Accumulate);
-
-/// A backend's [`conv`] wrapper for narrow signed codes.
-pub(crate) type SignedBytesKernel =
-    unsafe fn(&ConvShape, &SignedByteRows<'_>, (&[i8], &[f32], &[f32]), &mut [f32], Accumulate);
 
 /// A backend's [`conv_pixel`] wrapper.
 pub(crate) type PixelKernel =
@@ -324,13 +296,17 @@ pub(crate) unsafe fn checked_conv_codes(
     unsafe { kernel(shape, input, parameters, output, accumulate) }
 }
 
-/// [`Kernels::conv_int8_signed_bytes`](crate::kernels::Kernels::conv_int8_signed_bytes) on
-/// `kernel`, the lengths checked (every input of whole codes suits the tiles).
+/// [`Kernels::conv_int8_signed_bytes`](crate::kernels::Kernels::conv_int8_signed_bytes)
+/// with VNNI's `vpdpbusd` on the weights offset by 128 (the tile of whole bytes), the
+/// lengths checked (every input of whole codes suits the tiles). AVX2 has no such wrapper:
+/// it takes the same codes as 16-bit words ([`Kernels::multiplies_signed_bytes`]).
+///
+/// [`Kernels::multiplies_signed_bytes`]: crate::kernels::Kernels::multiplies_signed_bytes
 ///
 /// # Safety
-/// The CPU supports what `kernel` requires.
+/// The CPU supports AVX-512 F/BW/VL and VNNI.
+#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vnni")]
 pub(crate) unsafe fn checked_conv_signed_bytes(
-    kernel: SignedBytesKernel,
     shape: &ConvShape,
     input: &SignedByteRows<'_>,
     parameters: (&[i8], &[f32], &[f32]),
@@ -338,6 +314,11 @@ pub(crate) unsafe fn checked_conv_signed_bytes(
     accumulate: Accumulate,
 ) {
     assert_signed_byte_lengths(shape, input, parameters, output.len());
-    // SAFETY: the caller vouches for the CPU; the lengths were asserted just above.
-    unsafe { kernel(shape, input, parameters, output, accumulate) }
+    // SAFETY: the CPU runs VNNI (this function's contract); the lengths were asserted just
+    // above.
+    unsafe {
+        conv::<VnniZmm, SignedByteRows<'_>, { VNNI_BYTES_TILE.0 }, { VNNI_BYTES_TILE.1 }>(
+            shape, input, parameters, output, accumulate,
+        )
+    }
 }

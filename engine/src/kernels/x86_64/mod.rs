@@ -63,26 +63,6 @@ macro_rules! shared_kernels {
             }
         }
 
-        fn conv_int8_signed_bytes(
-            &self,
-            shape: &ConvShape,
-            input: &SignedByteRows<'_>,
-            weight: &[i8],
-            weight_scales: &[f32],
-            bias: &[f32],
-            output: &mut [f32],
-            accumulate: Accumulate,
-        ) {
-            let parameters = (weight, weight_scales, bias);
-            let kernel = int8::$backend::conv_signed_bytes;
-            // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe {
-                int8::checked_conv_signed_bytes(
-                    kernel, shape, input, parameters, output, accumulate,
-                )
-            }
-        }
-
         fn matvec_int8_codes(
             &self,
             weight: &[i8],

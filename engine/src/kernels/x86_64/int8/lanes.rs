@@ -3,15 +3,14 @@
 //! exact widening of their i32 sums to f64 and the one rounding to f32.
 
 use core::arch::x86_64::{
-    __m256, __m256d, __m256i, __m512, __m512d, __m512i, _mm_cvtepi8_epi16, _mm_cvtsi32_si128,
-    _mm_loadu_si128, _mm256_add_epi32, _mm256_add_pd, _mm256_add_ps, _mm256_broadcastq_epi64,
-    _mm256_castps_pd, _mm256_castsi256_si128, _mm256_cvtepi8_epi16, _mm256_cvtepi32_pd,
-    _mm256_cvtepi32_ps, _mm256_cvtpd_ps, _mm256_extracti128_si256, _mm256_hadd_epi32,
-    _mm256_loadu_ps, _mm256_loadu_si256, _mm256_madd_epi16, _mm256_maddubs_epi16, _mm256_mul_pd,
-    _mm256_mul_ps, _mm256_permute4x64_epi64, _mm256_set_m128, _mm256_set1_epi8, _mm256_set1_epi16,
-    _mm256_set1_epi32, _mm256_set1_epi64x, _mm256_set1_pd, _mm256_set1_ps, _mm256_setzero_pd,
-    _mm256_setzero_ps, _mm256_setzero_si256, _mm256_storeu_ps, _mm256_storeu_si256,
-    _mm256_xor_si256, _mm512_add_epi32, _mm512_add_pd, _mm512_add_ps, _mm512_broadcastq_epi64,
+    __m256, __m256d, __m256i, __m512, __m512d, __m512i, _mm_loadu_si128, _mm256_add_epi32,
+    _mm256_add_pd, _mm256_add_ps, _mm256_castps_pd, _mm256_castsi256_si128, _mm256_cvtepi8_epi16,
+    _mm256_cvtepi32_pd, _mm256_cvtepi32_ps, _mm256_cvtpd_ps, _mm256_extracti128_si256,
+    _mm256_hadd_epi32, _mm256_loadu_ps, _mm256_loadu_si256, _mm256_madd_epi16,
+    _mm256_maddubs_epi16, _mm256_mul_pd, _mm256_mul_ps, _mm256_permute4x64_epi64, _mm256_set_m128,
+    _mm256_set1_epi8, _mm256_set1_epi16, _mm256_set1_epi32, _mm256_set1_epi64x, _mm256_set1_pd,
+    _mm256_set1_ps, _mm256_setzero_pd, _mm256_setzero_ps, _mm256_setzero_si256, _mm256_storeu_ps,
+    _mm256_storeu_si256, _mm256_xor_si256, _mm512_add_epi32, _mm512_add_pd, _mm512_add_ps,
     _mm512_castpd_ps, _mm512_castpd256_pd512, _mm512_castsi512_si256, _mm512_cvtepi8_epi16,
     _mm512_cvtepi32_pd, _mm512_cvtepi32_ps, _mm512_cvtpd_ps, _mm512_dpbusd_epi32,
     _mm512_dpwssd_epi32, _mm512_extracti64x4_epi64, _mm512_insertf64x4, _mm512_loadu_ps,
@@ -71,11 +70,6 @@ pub(crate) unsafe trait Int8Lanes {
     ) -> Self::Integers;
     /// `2 WIDTH` consecutive i16 codes, two a lane.
     unsafe fn load_codes(from: *const i16) -> Self::Integers;
-    /// Four signed byte codes (one quad) widened to i16, as [`broadcast_codes`] lays them
-    /// out.
-    ///
-    /// [`broadcast_codes`]: Int8Lanes::broadcast_codes
-    unsafe fn broadcast_byte_codes(from: *const i8) -> Self::Integers;
     /// Every byte plus 128, read as unsigned (`byte ^ 0x80`): signed weights as the
     /// unsigned side of [`dot_quads`](Int8Lanes::dot_quads).
     unsafe fn offset_bytes(bytes: Self::Integers) -> Self::Integers;
@@ -183,14 +177,6 @@ unsafe impl Int8Lanes for PairSumsYmm {
     unsafe fn load_codes(from: *const i16) -> __m256i {
         // SAFETY: AVX2, and 32 bytes readable (trait contract).
         unsafe { _mm256_loadu_si256(from.cast()) }
-    }
-    #[inline(always)]
-    unsafe fn broadcast_byte_codes(from: *const i8) -> __m256i {
-        // SAFETY: AVX2, and 4 bytes readable (trait contract).
-        unsafe {
-            let quad = _mm_cvtsi32_si128(from.cast::<i32>().read_unaligned());
-            _mm256_broadcastq_epi64(_mm_cvtepi8_epi16(quad))
-        }
     }
     #[inline(always)]
     unsafe fn offset_bytes(bytes: __m256i) -> __m256i {
@@ -336,14 +322,6 @@ unsafe impl Int8Lanes for VnniZmm {
     unsafe fn load_codes(from: *const i16) -> __m512i {
         // SAFETY: AVX-512F, and 64 bytes readable (trait contract).
         unsafe { _mm512_loadu_si512(from.cast()) }
-    }
-    #[inline(always)]
-    unsafe fn broadcast_byte_codes(from: *const i8) -> __m512i {
-        // SAFETY: AVX-512F, and 4 bytes readable (trait contract).
-        unsafe {
-            let quad = _mm_cvtsi32_si128(from.cast::<i32>().read_unaligned());
-            _mm512_broadcastq_epi64(_mm_cvtepi8_epi16(quad))
-        }
     }
     #[inline(always)]
     unsafe fn offset_bytes(bytes: __m512i) -> __m512i {

@@ -290,41 +290,15 @@ impl TileInput for ByteRows<'_> {
 /// 1.17-1.19x as long on Zen 4, whose L3 is small enough for the stream to matter).
 const PREFETCH_QUADS: usize = 64;
 
-/// Whole signed codes a tile broadcasts as i16 lane pairs: the U-Net's 15-bit codes, and
-/// its narrow codes on lanes without whole-byte products.
-trait PairCode: Copy {
-    /// One quad of codes from `from` as [`Int8Lanes::broadcast_codes`] lays them out.
-    ///
-    /// # Safety
-    /// The CPU supports `L`; four codes are readable from `from`.
-    unsafe fn broadcast<L: Int8Lanes>(from: *const Self) -> L::Integers;
-}
-
-impl PairCode for i16 {
-    #[inline(always)]
-    unsafe fn broadcast<L: Int8Lanes>(from: *const i16) -> L::Integers {
-        // SAFETY: the caller's promises.
-        unsafe { L::broadcast_codes(from) }
-    }
-}
-
-impl PairCode for i8 {
-    #[inline(always)]
-    unsafe fn broadcast<L: Int8Lanes>(from: *const i8) -> L::Integers {
-        // SAFETY: the caller's promises.
-        unsafe { L::broadcast_byte_codes(from) }
-    }
-}
-
 /// The codes times the widened weights, two lanes a channel, added up per tap in i32
 /// (exact: [`MAX_DIGIT_CHANNELS`]), the taps' sums in f64 (exact), rounded and scaled.
 ///
 /// # Safety
 /// As for [`TileInput::tile_totals`]; `codes` are rows of `CodeRows::row_stride(in)`.
 #[inline(always)]
-unsafe fn pair_totals<L: Int8Lanes, C: PairCode, const P: usize, const V: usize>(
+unsafe fn pair_totals<L: Int8Lanes, const P: usize, const V: usize>(
     shape: &ConvShape,
-    (codes, scale): (&[C], f32),
+    (codes, scale): (&[i16], f32),
     weight: &[i8],
     pixels: &PixelTile<P>,
     channel: usize,
@@ -364,7 +338,7 @@ unsafe fn pair_totals<L: Int8Lanes, C: PairCode, const P: usize, const V: usize>
                         )
                     });
                     for pixel in 0..P {
-                        let broadcast = C::broadcast::<L>(sources[pixel].add(quad * QUAD));
+                        let broadcast = L::broadcast_codes(sources[pixel].add(quad * QUAD));
                         for vector in 0..V {
                             let (low, high) = &mut sums[pixel][vector];
                             *low = L::dot_code_pairs(*low, broadcast, halves[vector].0);
@@ -404,19 +378,16 @@ impl TileInput for CodeRows<'_> {
         channel: usize,
     ) -> [[L::Floats; V]; P] {
         // SAFETY: the caller's promises, passed on.
-        unsafe {
-            pair_totals::<L, i16, P, V>(shape, (self.codes, self.scale), weight, pixels, channel)
-        }
+        unsafe { pair_totals::<L, P, V>(shape, (self.codes, self.scale), weight, pixels, channel) }
     }
 }
 
 impl TileInput for SignedByteRows<'_> {
-    /// On lanes with whole-byte products, the weights offset by 128 (unsigned) times the
-    /// signed codes, summed over the whole kernel in i32 (exact: at most
-    /// [`MAX_BYTE_TERMS`](crate::kernels::MAX_BYTE_TERMS) products of 255 x 127), less 128
-    /// times the codes the pixel read (its rows' sums): `sum (w + 128) c - 128 sum c`, the
-    /// exact `sum w c`, in half the products of widened pairs. Elsewhere [`pair_totals`] of
-    /// the bytes.
+    /// On lanes with whole-byte products (only those), the weights offset by 128
+    /// (unsigned) times the signed codes, summed over the whole kernel in i32 (exact: at
+    /// most [`MAX_BYTE_TERMS`](crate::kernels::MAX_BYTE_TERMS) products of 255 x 127), less
+    /// 128 times the codes the pixel read (its rows' sums): `sum (w + 128) c - 128 sum c`,
+    /// the exact `sum w c`, in half the products of widened pairs.
     #[inline(always)]
     unsafe fn tile_totals<L: Int8Lanes, const P: usize, const V: usize>(
         &self,
@@ -425,12 +396,7 @@ impl TileInput for SignedByteRows<'_> {
         pixels: &PixelTile<P>,
         channel: usize,
     ) -> [[L::Floats; V]; P] {
-        if !L::WHOLE_BYTES {
-            // SAFETY: the caller's promises, passed on.
-            return unsafe {
-                pair_totals::<L, i8, P, V>(shape, (self.codes, self.scale), weight, pixels, channel)
-            };
-        }
+        const { assert!(L::WHOLE_BYTES) };
         let row_stride = CodeRows::row_stride(shape.in_channels);
         let quads = row_stride / QUAD;
         let quad_stride = int8_quad_stride(shape.out_channels, channel);
