@@ -1710,12 +1710,14 @@ impl ByteCase {
 /// and ones not a multiple of 4, output channels off the tiles' blocks, maps of one pixel
 /// and more): every backend bit for bit against the scalar reference, which equals
 /// `conv_int8` on the same bytes split into digits; bytes 0 and 255 and weights -128 and
-/// 127 included. Then the path a model takes: each backend quantizes the same input in its
-/// own narrow form and convolves it, and gets the reference's bits.
+/// 127 included; the AMX tiles alone too, where they take the shape (whole 32-channel
+/// blocks out, whole quads in). Then the path a model takes: each backend quantizes the same
+/// input in its own narrow form and convolves it, and gets the reference's bits.
 #[test]
 fn narrow_byte_convolution_is_bit_identical_on_every_backend() {
     let mut rng = Lcg(83);
     let backends = backends();
+    let mut on_tiles = 0;
     for case in 0..60 {
         let kernel = [1, 3][case % 2];
         let stride = 1 + rng.below(2);
@@ -1750,7 +1752,24 @@ fn narrow_byte_convolution_is_bit_identical_on_every_backend() {
         let initial = rng.vec(shape.output_len());
         for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
             let what = format!("case {case} {shape:?} {accumulate:?}");
-            problem.check_backends(&backends, accumulate, &initial, &what);
+            let expected = problem.check_backends(&backends, accumulate, &initial, &what);
+            #[cfg(target_arch = "x86_64")]
+            if let Some(amx) = Amx::detect() {
+                let mut found = initial.clone();
+                let taken = amx.conv_int8_bytes_on_tiles(
+                    &shape,
+                    &problem.input(),
+                    problem.parameters(),
+                    &mut found,
+                    accumulate,
+                );
+                let takes = in_channels % 4 == 0 && out_channels % 32 == 0;
+                assert_eq!(taken, takes, "{what}: the tiles' choice");
+                if taken {
+                    assert_same_bits(&found, &expected, &format!("{what} tiles"));
+                    on_tiles += 1;
+                }
+            }
         }
         // The model's path: quantize in the backend's form, then convolve.
         let values: Vec<f32> = (0..shape.input_len())
@@ -1786,17 +1805,21 @@ fn narrow_byte_convolution_is_bit_identical_on_every_backend() {
             assert_same_bits(&convolve(*kernels), &expected, &what);
         }
     }
+    #[cfg(target_arch = "x86_64")]
+    if Amx::detect().is_some() {
+        assert!(on_tiles >= 20, "only {on_tiles} cases ran on the tiles");
+    }
 }
 
 /// The narrow forms each backend asks for: whole bytes where its byte products take 0..=255
-/// (the reference, VNNI), digit planes otherwise (AVX2's `vpmaddubsw` saturates; AMX runs
-/// its two-plane tiles). A backend quietly falling back to the digits would still pass the
+/// (the reference, VNNI, the AMX tiles), digit planes otherwise (AVX2's `vpmaddubsw`
+/// saturates). A backend quietly falling back to the digits would still pass the
 /// bit-identity tests while giving up the narrow path's speed.
 #[test]
 fn backends_read_narrow_codes_in_their_fastest_form() {
     for (name, kernels) in backends() {
         let expected = match name {
-            "scalar" | "avx512" => NarrowForm::Bytes,
+            "scalar" | "avx512" | "amx" => NarrowForm::Bytes,
             _ => NarrowForm::Digits,
         };
         assert_eq!(kernels.narrow_form(), expected, "{name}");

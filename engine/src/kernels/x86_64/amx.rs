@@ -1,5 +1,6 @@
 //! Intel AMX: the int8 convolutions on the tile matrix unit (`tdpbusd`, `tdpbssd`): the
-//! trunk's on digit planes, the U-Net's on signed codes; every other kernel from [`Avx512`].
+//! trunk's on digit planes (15-bit codes) or whole bytes (8-bit codes, the stem's patches),
+//! the U-Net's on 15-bit signed codes; every other kernel from [`Avx512`].
 //!
 //! One `tdpbusd` multiplies a 16 x 64 tile of u8 activations (16 output positions, 64
 //! input channels) by a 16 x 64 tile of i8 weights (16 input-channel quads, 16 output
@@ -9,7 +10,9 @@
 //! weight tile, all eight tile registers. The contract's sums are exact over the whole
 //! kernel and the input has one scale, so the sum tiles run across taps and input channels
 //! alike and are stored once per block, each pixel's `128 high + low` formed, rounded and
-//! scaled then (same bits as the scalar reference, tested on every backend).
+//! scaled then (same bits as the scalar reference, tested on every backend). A plane of
+//! whole bytes is one activation tile per 16 positions, so a block is 32 positions: the
+//! same four loads for four products, each product a whole byte instead of a digit.
 //!
 //! On this project's machines a `tileloadd` whose rows are not 64-byte aligned, or that
 //! a tile gathered through vector stores just before, costs several `tdpbusd`s, and the
@@ -26,7 +29,9 @@
 //! exact code sums. Its sequences are 4 to 16 positions, one or two tiles: the vector
 //! kernels spent most of their time widening each weight for every 4 positions. Those of at
 //! most 8 output positions, which hold nearly all its weights, go to `short_sequence`:
-//! both digits in one tile, so a pass covers a whole 64-channel block of the layout.
+//! both digits in one tile, so a pass covers a whole 64-channel block of the layout. Its
+//! 8-bit signed codes run VNNI's kernel: the loop is as long as its weights take to stream
+//! from L3 whichever unit multiplies them.
 //!
 //! Linux hands out the tile registers on request only (`arch_prctl(ARCH_REQ_XCOMP_PERM)`);
 //! without an OS (`target_os = "none"`) the firmware that set XCR0 has enabled them.
@@ -41,7 +46,7 @@ use super::avx512::Avx512;
 use crate::kernels::int8_quad_index;
 use crate::kernels::ops::Activation;
 use crate::kernels::{
-    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, SignedByteRows,
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, NarrowForm, SignedByteRows,
 };
 pub use band::TileLayout;
 use band::{BandInput, band, short_sequence_takes, tiles_take};
@@ -83,8 +88,8 @@ impl Amx {
         short_sequence_takes(shape, input) || band(shape, input).is_some()
     }
 
-    /// [`covers`](Self::covers) for [`Kernels::conv_int8_bytes`]: the stem's patches
-    /// qualify.
+    /// [`covers`](Self::covers) for [`Kernels::conv_int8_bytes`]: the stem's patches and
+    /// every residual-block layer qualify.
     pub fn covers_bytes(shape: &ConvShape, input: &ByteRows<'_>) -> bool {
         band(shape, input).is_some()
     }
@@ -126,12 +131,12 @@ impl Amx {
         self.on_tiles(shape, input, parameters, output, accumulate)
     }
 
-    /// [`Kernels::conv_int8_bytes`] on the tiles, 32 positions' whole bytes a block;
-    /// `false`, with nothing written, when they do not apply (output channels not in whole
-    /// 32-channel blocks). Tests call it to know the tiles ran.
+    /// [`Kernels::conv_int8_bytes`] on the tiles, 32 positions' whole bytes a block (the
+    /// stem's patches, the residual blocks' narrow codes); `false`, with nothing written,
+    /// when they do not apply ([`Amx::covers_bytes`]). Tests call it to know the tiles ran.
     ///
     /// # Panics
-    /// If the shape is not pointwise or a slice is shorter than the contract makes it.
+    /// If a slice is shorter than the contract makes it.
     pub fn conv_int8_bytes_on_tiles(
         &self,
         shape: &ConvShape,
@@ -328,11 +333,7 @@ impl Kernels for Amx {
         accumulate: Accumulate,
     ) {
         let parameters = (weight, weight_scales, bias);
-        // The tiles take the stem's pointwise patches; other byte convolutions (which this
-        // backend's narrow codes, digit planes, never are) go to VNNI.
-        if !(shape.is_pointwise()
-            && self.conv_int8_bytes_on_tiles(shape, input, parameters, output, accumulate))
-        {
+        if !self.conv_int8_bytes_on_tiles(shape, input, parameters, output, accumulate) {
             self.avx512.conv_int8_bytes(
                 shape,
                 input,
@@ -469,12 +470,13 @@ impl Kernels for Amx {
             .quantize_signed_bytes(input, row_len, codes, row_sums)
     }
 
-    fn quantize_narrow(
-        &self,
-        input: &[f32],
-        scratch: &mut [i8],
-        form: crate::kernels::NarrowForm,
-    ) -> f32 {
+    /// One plane of bytes, one `tdpbusd` per byte product: half the products and half the
+    /// activation tile loads of the two digit planes.
+    fn narrow_form(&self) -> NarrowForm {
+        NarrowForm::Bytes
+    }
+
+    fn quantize_narrow(&self, input: &[f32], scratch: &mut [i8], form: NarrowForm) -> f32 {
         self.avx512.quantize_narrow(input, scratch, form)
     }
 

@@ -15,7 +15,9 @@ use super::{
     short_sequence,
 };
 use crate::kernels::scalar::{assert_byte_lengths, assert_code_lengths, assert_int8_lengths};
-use crate::kernels::{ByteRows, CodeRows, ConvShape, DigitRows, MAX_DIGIT_TERMS, QUAD};
+use crate::kernels::{
+    ByteRows, CodeRows, ConvShape, DigitRows, MAX_BYTE_TERMS, MAX_DIGIT_TERMS, QUAD,
+};
 
 /// Whether every tile kernel can take a convolution on `input`: digits the products
 /// take, whole quads, exact sums, whole 32-channel blocks, and a partial last step packable.
@@ -23,9 +25,15 @@ pub(super) fn tiles_take<I: BandInput>(shape: &ConvShape, input: &I) -> bool {
     let channels = I::channels(shape);
     let taps = shape.kernel_height * shape.kernel_width;
     let partial_fits = channels.is_multiple_of(CHANNELS_PER_STEP) || taps <= MAX_PARTIAL_TAPS;
+    // A plane of bytes (up to 255) has a lower bound for exact i32 sums than a digit's.
+    let max_terms = if I::PLANES == 1 {
+        MAX_BYTE_TERMS
+    } else {
+        MAX_DIGIT_TERMS
+    };
     input.digits_fit()
         && channels.is_multiple_of(QUAD)
-        && taps * channels <= MAX_DIGIT_TERMS
+        && taps * channels <= max_terms
         && shape.out_channels.is_multiple_of(BLOCK_CHANNELS)
         && partial_fits
 }
