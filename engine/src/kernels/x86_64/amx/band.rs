@@ -54,7 +54,8 @@ pub(super) fn band<I: BandInput>(shape: &ConvShape, input: &I) -> Option<Band> {
 
 /// Activations the tiles read as two digit planes, `code = 128 high + low`: the trunk's
 /// [`DigitRows`] as they are, the U-Net's signed [`CodeRows`] split while a band is copied;
-/// or as one plane of whole bytes, the stem's [`ByteRows`].
+/// or as one plane of whole bytes, [`ByteRows`] (the stem's patches, the residual blocks'
+/// narrow codes).
 pub(super) trait BandInput {
     /// The high digits can be negative (`tdpbssd`, signed by signed bytes); otherwise both
     /// digits are in 0..=127 (`tdpbusd`).
