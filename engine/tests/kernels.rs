@@ -1811,6 +1811,31 @@ fn narrow_byte_convolution_is_bit_identical_on_every_backend() {
     }
 }
 
+/// The tiles take whole bytes only while a kernel's exact sum fits i32
+/// (`MAX_BYTE_TERMS` products), a lower bound than the digit planes' (`MAX_DIGIT_TERMS`).
+#[cfg(target_arch = "x86_64")]
+#[test]
+fn byte_tiles_stop_at_the_exact_sum_bound() {
+    use scdp_engine::kernels::{MAX_BYTE_TERMS, MAX_DIGIT_TERMS};
+    const { assert!(MAX_BYTE_TERMS < MAX_DIGIT_TERMS) };
+    // An 11x11 kernel over one output pixel: 121 taps of 512 channels (61,952 products)
+    // fit, of 576 (69,696) do not; either band fits the stack buffer.
+    for (channels, takes) in [(512, true), (576, false)] {
+        assert_eq!(121 * channels <= MAX_BYTE_TERMS, takes);
+        let shape = ConvShape::square((11, 11, channels), 32, 11, 1, 0);
+        let bytes = vec![0u8; shape.input_len()];
+        let input = ByteRows {
+            bytes: &bytes,
+            scale: 1.0,
+        };
+        assert_eq!(
+            Amx::covers_bytes(&shape, &input),
+            takes,
+            "{channels} channels"
+        );
+    }
+}
+
 /// The narrow forms each backend asks for: whole bytes where its byte products take 0..=255
 /// (the reference, VNNI, the AMX tiles), digit planes otherwise (AVX2's `vpmaddubsw`
 /// saturates). A backend quietly falling back to the digits would still pass the

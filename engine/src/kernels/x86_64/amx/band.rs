@@ -25,15 +25,9 @@ pub(super) fn tiles_take<I: BandInput>(shape: &ConvShape, input: &I) -> bool {
     let channels = I::channels(shape);
     let taps = shape.kernel_height * shape.kernel_width;
     let partial_fits = channels.is_multiple_of(CHANNELS_PER_STEP) || taps <= MAX_PARTIAL_TAPS;
-    // A plane of bytes (up to 255) has a lower bound for exact i32 sums than a digit's.
-    let max_terms = if I::PLANES == 1 {
-        MAX_BYTE_TERMS
-    } else {
-        MAX_DIGIT_TERMS
-    };
     input.digits_fit()
         && channels.is_multiple_of(QUAD)
-        && taps * channels <= max_terms
+        && taps * channels <= I::MAX_TERMS
         && shape.out_channels.is_multiple_of(BLOCK_CHANNELS)
         && partial_fits
 }
@@ -65,6 +59,10 @@ pub(super) trait BandInput {
     /// whole by `tdpbusd`).
     const PLANES: usize;
 
+    /// Products (kernel taps x channels) up to which a plane's sums over a whole kernel fit
+    /// i32: fewer for whole bytes (up to 255) than for digits.
+    const MAX_TERMS: usize;
+
     /// Channels a pixel of the input holds: the layer's input channels, in whole quads.
     fn channels(shape: &ConvShape) -> usize;
 
@@ -95,6 +93,7 @@ pub(super) trait BandInput {
 impl BandInput for DigitRows<'_> {
     const SIGNED_HIGH: bool = false;
     const PLANES: usize = 2;
+    const MAX_TERMS: usize = MAX_DIGIT_TERMS;
 
     fn channels(shape: &ConvShape) -> usize {
         shape.in_channels
@@ -132,6 +131,7 @@ impl BandInput for DigitRows<'_> {
 impl BandInput for CodeRows<'_> {
     const SIGNED_HIGH: bool = true;
     const PLANES: usize = 2;
+    const MAX_TERMS: usize = MAX_DIGIT_TERMS;
 
     fn channels(shape: &ConvShape) -> usize {
         CodeRows::row_stride(shape.in_channels)
@@ -188,6 +188,7 @@ impl BandInput for CodeRows<'_> {
 impl BandInput for ByteRows<'_> {
     const SIGNED_HIGH: bool = false;
     const PLANES: usize = 1;
+    const MAX_TERMS: usize = MAX_BYTE_TERMS;
 
     fn channels(shape: &ConvShape) -> usize {
         shape.in_channels
