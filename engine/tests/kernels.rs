@@ -1571,21 +1571,8 @@ fn byte_convolution_equals_the_digit_convolution_on_every_backend() {
             let what = format!("case {case} {shape:?} {accumulate:?}");
             let expected = problem.check_backends(&backends, accumulate, &initial, &what);
             #[cfg(target_arch = "x86_64")]
-            if let Some(amx) = Amx::detect() {
-                let mut found = initial.clone();
-                let taken = amx.conv_int8_bytes_on_tiles(
-                    &shape,
-                    &problem.input(),
-                    problem.parameters(),
-                    &mut found,
-                    accumulate,
-                );
-                let takes = in_channels % 4 == 0 && out_channels % 32 == 0;
-                assert_eq!(taken, takes, "{what}: the tiles' choice");
-                if taken {
-                    assert_same_bits(&found, &expected, &format!("{what} tiles"));
-                    on_tiles += 1;
-                }
+            if problem.check_tiles(accumulate, &initial, &expected, &what) {
+                on_tiles += 1;
             }
         }
     }
@@ -1680,6 +1667,37 @@ impl ByteCase {
         expected
     }
 
+    /// Whether the AMX tiles alone took the convolution, having checked their choice (whole
+    /// quads in, whole 32-channel blocks out) and, when they took it, their bits against
+    /// `expected`; `false` without AMX.
+    #[cfg(target_arch = "x86_64")]
+    fn check_tiles(
+        &self,
+        accumulate: Accumulate,
+        initial: &[f32],
+        expected: &[f32],
+        what: &str,
+    ) -> bool {
+        let Some(amx) = Amx::detect() else {
+            return false;
+        };
+        let mut found = initial.to_vec();
+        let taken = amx.conv_int8_bytes_on_tiles(
+            &self.shape,
+            &self.input(),
+            self.parameters(),
+            &mut found,
+            accumulate,
+        );
+        let takes =
+            self.shape.in_channels.is_multiple_of(4) && self.shape.out_channels.is_multiple_of(32);
+        assert_eq!(taken, takes, "{what}: the tiles' choice");
+        if taken {
+            assert_same_bits(&found, expected, &format!("{what} tiles"));
+        }
+        taken
+    }
+
     /// The reference's `conv_int8` on the bytes split into digits.
     fn run_split(&self, accumulate: Accumulate, initial: &[f32]) -> Vec<f32> {
         let high: Vec<i8> = self.bytes.iter().map(|&b| (b >> 7) as i8).collect();
@@ -1754,21 +1772,8 @@ fn narrow_byte_convolution_is_bit_identical_on_every_backend() {
             let what = format!("case {case} {shape:?} {accumulate:?}");
             let expected = problem.check_backends(&backends, accumulate, &initial, &what);
             #[cfg(target_arch = "x86_64")]
-            if let Some(amx) = Amx::detect() {
-                let mut found = initial.clone();
-                let taken = amx.conv_int8_bytes_on_tiles(
-                    &shape,
-                    &problem.input(),
-                    problem.parameters(),
-                    &mut found,
-                    accumulate,
-                );
-                let takes = in_channels % 4 == 0 && out_channels % 32 == 0;
-                assert_eq!(taken, takes, "{what}: the tiles' choice");
-                if taken {
-                    assert_same_bits(&found, &expected, &format!("{what} tiles"));
-                    on_tiles += 1;
-                }
+            if problem.check_tiles(accumulate, &initial, &expected, &what) {
+                on_tiles += 1;
             }
         }
         // The model's path: quantize in the backend's form, then convolve.
