@@ -5,19 +5,18 @@
 use core::arch::x86_64::{
     __m256, __m256d, __m256i, __m512, __m512d, __m512i, _mm_loadu_si128, _mm256_add_epi32,
     _mm256_add_pd, _mm256_add_ps, _mm256_castps_pd, _mm256_castsi256_si128, _mm256_cvtepi8_epi16,
-    _mm256_cvtepi32_pd, _mm256_cvtepi32_ps, _mm256_cvtpd_ps, _mm256_extracti128_si256,
-    _mm256_hadd_epi32, _mm256_loadu_ps, _mm256_loadu_si256, _mm256_madd_epi16,
-    _mm256_maddubs_epi16, _mm256_mul_pd, _mm256_mul_ps, _mm256_permute4x64_epi64, _mm256_set_m128,
-    _mm256_set1_epi8, _mm256_set1_epi16, _mm256_set1_epi32, _mm256_set1_epi64x, _mm256_set1_pd,
-    _mm256_set1_ps, _mm256_setzero_pd, _mm256_setzero_ps, _mm256_setzero_si256, _mm256_storeu_ps,
-    _mm256_storeu_si256, _mm256_xor_si256, _mm512_add_epi32, _mm512_add_pd, _mm512_add_ps,
-    _mm512_castpd_ps, _mm512_castpd256_pd512, _mm512_castsi512_si256, _mm512_cvtepi8_epi16,
-    _mm512_cvtepi32_pd, _mm512_cvtepi32_ps, _mm512_cvtpd_ps, _mm512_dpbusd_epi32,
-    _mm512_dpwssd_epi32, _mm512_extracti64x4_epi64, _mm512_insertf64x4, _mm512_loadu_ps,
-    _mm512_loadu_si512, _mm512_mul_pd, _mm512_mul_ps, _mm512_permutex2var_epi32, _mm512_set1_epi8,
-    _mm512_set1_epi32, _mm512_set1_epi64, _mm512_set1_pd, _mm512_set1_ps, _mm512_setr_epi32,
-    _mm512_setzero_pd, _mm512_setzero_ps, _mm512_setzero_si512, _mm512_storeu_ps,
-    _mm512_storeu_si512, _mm512_xor_si512,
+    _mm256_cvtepi32_pd, _mm256_cvtpd_ps, _mm256_extracti128_si256, _mm256_hadd_epi32,
+    _mm256_loadu_ps, _mm256_loadu_si256, _mm256_madd_epi16, _mm256_maddubs_epi16, _mm256_mul_pd,
+    _mm256_mul_ps, _mm256_permute4x64_epi64, _mm256_set_m128, _mm256_set1_epi16, _mm256_set1_epi32,
+    _mm256_set1_epi64x, _mm256_set1_pd, _mm256_set1_ps, _mm256_setzero_pd, _mm256_setzero_ps,
+    _mm256_setzero_si256, _mm256_storeu_ps, _mm256_storeu_si256, _mm512_add_epi32, _mm512_add_pd,
+    _mm512_add_ps, _mm512_castpd_ps, _mm512_castpd256_pd512, _mm512_castsi512_si256,
+    _mm512_cvtepi8_epi16, _mm512_cvtepi32_pd, _mm512_cvtepi32_ps, _mm512_cvtpd_ps,
+    _mm512_dpbusd_epi32, _mm512_dpwssd_epi32, _mm512_extracti64x4_epi64, _mm512_insertf64x4,
+    _mm512_loadu_ps, _mm512_loadu_si512, _mm512_mul_pd, _mm512_mul_ps, _mm512_permutex2var_epi32,
+    _mm512_set1_epi8, _mm512_set1_epi32, _mm512_set1_epi64, _mm512_set1_pd, _mm512_set1_ps,
+    _mm512_setr_epi32, _mm512_setzero_pd, _mm512_setzero_ps, _mm512_setzero_si512,
+    _mm512_storeu_ps, _mm512_storeu_si512, _mm512_xor_si512,
 };
 
 use crate::kernels::ops;
@@ -38,9 +37,6 @@ pub(crate) unsafe trait Int8Lanes {
     /// that i32 lanes cannot hold.
     type Exact: Copy;
     const WIDTH: usize;
-    /// Whether [`dot_quads`](Self::dot_quads) is exact for activations in 0..=255 (whole
-    /// bytes), not only 0..=127.
-    const WHOLE_BYTES: bool;
     unsafe fn zero_integers() -> Self::Integers;
     unsafe fn zero_floats() -> Self::Floats;
     unsafe fn zero_exact() -> Self::Exact;
@@ -70,11 +66,6 @@ pub(crate) unsafe trait Int8Lanes {
     ) -> Self::Integers;
     /// `2 WIDTH` consecutive i16 codes, two a lane.
     unsafe fn load_codes(from: *const i16) -> Self::Integers;
-    /// Every byte plus 128, read as unsigned (`byte ^ 0x80`): signed weights as the
-    /// unsigned side of [`dot_quads`](Int8Lanes::dot_quads).
-    unsafe fn offset_bytes(bytes: Self::Integers) -> Self::Integers;
-    /// `value` in every i32 lane.
-    unsafe fn splat_integers(value: i32) -> Self::Integers;
     /// `a + b` per i32 lane (wrapping).
     unsafe fn add_integers(a: Self::Integers, b: Self::Integers) -> Self::Integers;
     /// The sum of every i32 lane, exact.
@@ -88,14 +79,28 @@ pub(crate) unsafe trait Int8Lanes {
     unsafe fn exact_digits(high: Self::Integers, low: Self::Integers) -> Self::Exact;
     /// The exact integers rounded to f32 (to nearest), times `scale`: two roundings.
     unsafe fn round_scaled(total: Self::Exact, scale: f32) -> Self::Floats;
-    /// i32 sums rounded to f32 (to nearest), times `scale`: the bits of
-    /// [`round_scaled`](Int8Lanes::round_scaled) of the same sums (an i32 is exact in f64),
-    /// in one conversion where that takes five.
-    unsafe fn integers_scaled(sums: Self::Integers, scale: f32) -> Self::Floats;
     unsafe fn load(from: *const f32) -> Self::Floats;
     unsafe fn store(to: *mut f32, value: Self::Floats);
     unsafe fn mul(a: Self::Floats, b: Self::Floats) -> Self::Floats;
     unsafe fn add(a: Self::Floats, b: Self::Floats) -> Self::Floats;
+}
+
+/// Lanes whose [`dot_quads`](Int8Lanes::dot_quads) is exact for activations in 0..=255
+/// (whole bytes), not only 0..=127, and what the kernels of whole bytes need beside it: the
+/// 8-bit codes' tiles are written for these lanes only.
+///
+/// # Safety
+/// As for [`Int8Lanes`].
+pub(crate) unsafe trait WholeByteLanes: Int8Lanes {
+    /// Every byte plus 128, read as unsigned (`byte ^ 0x80`): signed weights as the
+    /// unsigned side of [`dot_quads`](Int8Lanes::dot_quads).
+    unsafe fn offset_bytes(bytes: Self::Integers) -> Self::Integers;
+    /// `value` in every i32 lane.
+    unsafe fn splat_integers(value: i32) -> Self::Integers;
+    /// i32 sums rounded to f32 (to nearest), times `scale`: the bits of
+    /// [`round_scaled`](Int8Lanes::round_scaled) of the same sums (an i32 is exact in f64),
+    /// in one conversion where that takes five.
+    unsafe fn integers_scaled(sums: Self::Integers, scale: f32) -> Self::Floats;
 }
 
 /// AVX2: eight channels a YMM vector. `vpmaddubsw` multiplies the quad's four activations
@@ -123,7 +128,6 @@ unsafe impl Int8Lanes for PairSumsYmm {
     type Exact = (__m256d, __m256d);
     const WIDTH: usize = 8;
     // A pair of 255 x 127 products saturates `vpmaddubsw`'s i16 lane.
-    const WHOLE_BYTES: bool = false;
     #[inline(always)]
     unsafe fn zero_integers() -> __m256i {
         // SAFETY: the caller runs on AVX2 (trait contract).
@@ -179,16 +183,6 @@ unsafe impl Int8Lanes for PairSumsYmm {
         unsafe { _mm256_loadu_si256(from.cast()) }
     }
     #[inline(always)]
-    unsafe fn offset_bytes(bytes: __m256i) -> __m256i {
-        // SAFETY: the caller runs on AVX2 (trait contract).
-        unsafe { _mm256_xor_si256(bytes, _mm256_set1_epi8(i8::MIN)) }
-    }
-    #[inline(always)]
-    unsafe fn splat_integers(value: i32) -> __m256i {
-        // SAFETY: the caller runs on AVX2 (trait contract).
-        unsafe { _mm256_set1_epi32(value) }
-    }
-    #[inline(always)]
     unsafe fn add_integers(a: __m256i, b: __m256i) -> __m256i {
         // SAFETY: the caller runs on AVX2 (trait contract).
         unsafe { _mm256_add_epi32(a, b) }
@@ -229,11 +223,6 @@ unsafe impl Int8Lanes for PairSumsYmm {
         }
     }
     #[inline(always)]
-    unsafe fn integers_scaled(sums: __m256i, scale: f32) -> __m256 {
-        // SAFETY: the caller runs on AVX2 (trait contract). `vcvtdq2ps` rounds as MXCSR says.
-        unsafe { _mm256_mul_ps(_mm256_cvtepi32_ps(sums), _mm256_set1_ps(scale)) }
-    }
-    #[inline(always)]
     unsafe fn round_scaled(total: (__m256d, __m256d), scale: f32) -> __m256 {
         // SAFETY: the caller runs on AVX2 (trait contract). `vcvtpd2ps` rounds as MXCSR
         // says, to nearest unless the caller changed it (Rust code never does).
@@ -270,8 +259,6 @@ unsafe impl Int8Lanes for VnniZmm {
     type Floats = __m512;
     type Exact = (__m512d, __m512d);
     const WIDTH: usize = 16;
-    // `vpdpbusd` adds its four u8 x i8 products into the i32 lane exactly.
-    const WHOLE_BYTES: bool = true;
     #[inline(always)]
     unsafe fn zero_integers() -> __m512i {
         // SAFETY: the caller runs on AVX-512F (trait contract).
@@ -324,16 +311,6 @@ unsafe impl Int8Lanes for VnniZmm {
         unsafe { _mm512_loadu_si512(from.cast()) }
     }
     #[inline(always)]
-    unsafe fn offset_bytes(bytes: __m512i) -> __m512i {
-        // SAFETY: the caller runs on AVX-512F (trait contract).
-        unsafe { _mm512_xor_si512(bytes, _mm512_set1_epi8(i8::MIN)) }
-    }
-    #[inline(always)]
-    unsafe fn splat_integers(value: i32) -> __m512i {
-        // SAFETY: the caller runs on AVX-512F (trait contract).
-        unsafe { _mm512_set1_epi32(value) }
-    }
-    #[inline(always)]
     unsafe fn add_integers(a: __m512i, b: __m512i) -> __m512i {
         // SAFETY: the caller runs on AVX-512F (trait contract).
         unsafe { _mm512_add_epi32(a, b) }
@@ -368,17 +345,14 @@ unsafe impl Int8Lanes for VnniZmm {
     }
     #[inline(always)]
     unsafe fn exact_digits(high: __m512i, low: __m512i) -> (__m512d, __m512d) {
-        // SAFETY: the caller runs on AVX-512F (trait contract). As for AVX2.
+        // SAFETY: the caller runs on AVX-512F (trait contract). `vcvtdq2ps` rounds as MXCSR
+        // says: to nearest.
         unsafe { exact_digits_zmm(high, low) }
     }
     #[inline(always)]
-    unsafe fn integers_scaled(sums: __m512i, scale: f32) -> __m512 {
-        // SAFETY: the caller runs on AVX-512F (trait contract). As for AVX2.
-        unsafe { _mm512_mul_ps(_mm512_cvtepi32_ps(sums), _mm512_set1_ps(scale)) }
-    }
-    #[inline(always)]
     unsafe fn round_scaled(total: (__m512d, __m512d), scale: f32) -> __m512 {
-        // SAFETY: the caller runs on AVX-512F (trait contract). As for AVX2.
+        // SAFETY: the caller runs on AVX-512F (trait contract). `vcvtdq2ps` rounds as MXCSR
+        // says: to nearest.
         unsafe { _mm512_mul_ps(round_zmm(total), _mm512_set1_ps(scale)) }
     }
     #[inline(always)]
@@ -400,6 +374,27 @@ unsafe impl Int8Lanes for VnniZmm {
     unsafe fn add(a: __m512, b: __m512) -> __m512 {
         // SAFETY: the caller runs on AVX-512F (trait contract).
         unsafe { _mm512_add_ps(a, b) }
+    }
+}
+
+// SAFETY: as for its `Int8Lanes`; `vpdpbusd` adds its four u8 x i8 products into the i32
+// lane exactly.
+unsafe impl WholeByteLanes for VnniZmm {
+    #[inline(always)]
+    unsafe fn offset_bytes(bytes: __m512i) -> __m512i {
+        // SAFETY: the caller runs on AVX-512F (trait contract).
+        unsafe { _mm512_xor_si512(bytes, _mm512_set1_epi8(i8::MIN)) }
+    }
+    #[inline(always)]
+    unsafe fn splat_integers(value: i32) -> __m512i {
+        // SAFETY: the caller runs on AVX-512F (trait contract).
+        unsafe { _mm512_set1_epi32(value) }
+    }
+    #[inline(always)]
+    unsafe fn integers_scaled(sums: __m512i, scale: f32) -> __m512 {
+        // SAFETY: the caller runs on AVX-512F (trait contract). `vcvtdq2ps` rounds as MXCSR
+        // says: to nearest.
+        unsafe { _mm512_mul_ps(_mm512_cvtepi32_ps(sums), _mm512_set1_ps(scale)) }
     }
 }
 

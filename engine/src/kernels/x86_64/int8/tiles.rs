@@ -2,7 +2,7 @@
 //! vectors of output channels, their exact sums held in registers across the whole kernel
 //! (the parent module describes the scheme).
 
-use super::lanes::Int8Lanes;
+use super::lanes::{Int8Lanes, WholeByteLanes};
 use crate::kernels::scalar::{CodeSums, conv_int8_pixel, conv_int8_pixels};
 use crate::kernels::x86_64::prefetch_lines_into_l2;
 use crate::kernels::{
@@ -110,10 +110,11 @@ unsafe fn add_digit_products<L: Int8Lanes, const P: usize, const V: usize>(
     sums
 }
 
-/// Quantized activations as the SIMD tiles read them: the exact code sums of a tile over
-/// the whole kernel, rounded and scaled, and (through [`CodeSums`]) the reference's reading
-/// for what the tiles leave.
-pub(crate) trait TileInput: CodeSums {
+/// Quantized activations as the SIMD tiles on lanes `L` read them: the exact code sums of a
+/// tile over the whole kernel, rounded and scaled, and (through [`CodeSums`]) the
+/// reference's reading for what the tiles leave. Whole bytes are read only on
+/// [`WholeByteLanes`].
+pub(crate) trait TileInput<L: Int8Lanes>: CodeSums {
     /// `round(S) * scale` for `P` pixels x `V` vectors of channels from `channel`, `S` the
     /// exact code sums over every tap and input channel.
     ///
@@ -121,7 +122,7 @@ pub(crate) trait TileInput: CodeSums {
     /// The CPU supports `L`; the slices have the lengths `shape` implies; [`tiles_apply`]
     /// holds for digit planes; `pixels` is a tile of this output; the block's `V WIDTH`
     /// channels from `channel` are inside the output channels.
-    unsafe fn tile_totals<L: Int8Lanes, const P: usize, const V: usize>(
+    unsafe fn tile_totals<const P: usize, const V: usize>(
         &self,
         shape: &ConvShape,
         weight: &[i8],
@@ -189,11 +190,11 @@ unsafe fn digit_sums<L: Int8Lanes, const P: usize, const V: usize>(
     sums
 }
 
-impl TileInput for DigitRows<'_> {
+impl<L: Int8Lanes> TileInput<L> for DigitRows<'_> {
     /// Each digit plane summed over the whole kernel in i32 (exact: [`MAX_DIGIT_TERMS`]),
     /// the two combined exactly.
     #[inline(always)]
-    unsafe fn tile_totals<L: Int8Lanes, const P: usize, const V: usize>(
+    unsafe fn tile_totals<const P: usize, const V: usize>(
         &self,
         shape: &ConvShape,
         weight: &[i8],
@@ -225,19 +226,18 @@ pub(crate) fn byte_tiles_apply(shape: &ConvShape) -> bool {
     shape.in_channels.is_multiple_of(QUAD)
 }
 
-impl TileInput for ByteRows<'_> {
+impl<L: WholeByteLanes> TileInput<L> for ByteRows<'_> {
     /// One plane of whole bytes summed over the whole kernel in i32 (exact:
     /// [`MAX_BYTE_TERMS`](crate::kernels::MAX_BYTE_TERMS)): half the products of two digit
     /// planes, on lanes whose byte products take 0..=255.
     #[inline(always)]
-    unsafe fn tile_totals<L: Int8Lanes, const P: usize, const V: usize>(
+    unsafe fn tile_totals<const P: usize, const V: usize>(
         &self,
         shape: &ConvShape,
         weight: &[i8],
         pixels: &PixelTile<P>,
         channel: usize,
     ) -> [[L::Floats; V]; P] {
-        const { assert!(L::WHOLE_BYTES) };
         let in_channels = shape.in_channels;
         let quads = in_channels / QUAD;
         let quad_stride = int8_quad_stride(shape.out_channels, channel);
@@ -367,10 +367,10 @@ unsafe fn pair_totals<L: Int8Lanes, const P: usize, const V: usize>(
     rounded
 }
 
-impl TileInput for CodeRows<'_> {
+impl<L: Int8Lanes> TileInput<L> for CodeRows<'_> {
     /// [`pair_totals`] of the 15-bit codes.
     #[inline(always)]
-    unsafe fn tile_totals<L: Int8Lanes, const P: usize, const V: usize>(
+    unsafe fn tile_totals<const P: usize, const V: usize>(
         &self,
         shape: &ConvShape,
         weight: &[i8],
@@ -382,21 +382,20 @@ impl TileInput for CodeRows<'_> {
     }
 }
 
-impl TileInput for SignedByteRows<'_> {
-    /// On lanes with whole-byte products (only those), the weights offset by 128
-    /// (unsigned) times the signed codes, summed over the whole kernel in i32 (exact: at
-    /// most [`MAX_BYTE_TERMS`](crate::kernels::MAX_BYTE_TERMS) products of 255 x 127), less
-    /// 128 times the codes the pixel read (its rows' sums): `sum (w + 128) c - 128 sum c`,
-    /// the exact `sum w c`, in half the products of widened pairs.
+impl<L: WholeByteLanes> TileInput<L> for SignedByteRows<'_> {
+    /// The weights offset by 128 (unsigned) times the signed codes, summed over the whole
+    /// kernel in i32 (exact: at most [`MAX_BYTE_TERMS`](crate::kernels::MAX_BYTE_TERMS)
+    /// products of 255 x 127), less 128 times the codes the pixel read (its rows' sums):
+    /// `sum (w + 128) c - 128 sum c`, the exact `sum w c`, in half the products of widened
+    /// pairs.
     #[inline(always)]
-    unsafe fn tile_totals<L: Int8Lanes, const P: usize, const V: usize>(
+    unsafe fn tile_totals<const P: usize, const V: usize>(
         &self,
         shape: &ConvShape,
         weight: &[i8],
         pixels: &PixelTile<P>,
         channel: usize,
     ) -> [[L::Floats; V]; P] {
-        const { assert!(L::WHOLE_BYTES) };
         let row_stride = CodeRows::row_stride(shape.in_channels);
         let quads = row_stride / QUAD;
         let quad_stride = int8_quad_stride(shape.out_channels, channel);
@@ -493,7 +492,7 @@ unsafe fn store<L: Int8Lanes, const P: usize, const V: usize>(
 /// # Safety
 /// As for [`conv`].
 #[inline(always)]
-unsafe fn channel_blocks<L: Int8Lanes, I: TileInput, const P: usize, const V: usize>(
+unsafe fn channel_blocks<L: Int8Lanes, I: TileInput<L>, const P: usize, const V: usize>(
     shape: &ConvShape,
     input: &I,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
@@ -513,7 +512,7 @@ unsafe fn channel_blocks<L: Int8Lanes, I: TileInput, const P: usize, const V: us
             let pixels = PixelTile::<P>::new(shape, first, (positions - first).min(P));
             // SAFETY: the caller's promises; the block and the tile are inside the output.
             unsafe {
-                let totals = input.tile_totals::<L, P, V>(shape, weight, &pixels, *channel);
+                let totals = input.tile_totals::<P, V>(shape, weight, &pixels, *channel);
                 let out = &mut output[first * out_channels + *channel..];
                 let parameters = (&weight_scales[block.clone()], &bias[block.clone()]);
                 store::<L, P, V>(
@@ -538,7 +537,7 @@ unsafe fn channel_blocks<L: Int8Lanes, I: TileInput, const P: usize, const V: us
 /// [`assert_int8_lengths`](crate::kernels::scalar::assert_int8_lengths) (or, for codes,
 /// `assert_code_lengths`) checks; [`tiles_apply`] holds for digit planes.
 #[inline(always)]
-pub(crate) unsafe fn conv<L: Int8Lanes, I: TileInput, const P: usize, const V: usize>(
+pub(crate) unsafe fn conv<L: Int8Lanes, I: TileInput<L>, const P: usize, const V: usize>(
     shape: &ConvShape,
     input: &I,
     parameters: (&[i8], &[f32], &[f32]),
@@ -589,11 +588,13 @@ pub(crate) unsafe fn conv_pixel<L: Int8Lanes, const V: usize>(
         // SAFETY: the caller's promises; each block is inside `out_channels`.
         unsafe {
             if channel + V * L::WIDTH <= out_channels {
-                let totals = input.tile_totals::<L, 1, V>(shape, weight, &pixels, channel);
+                let totals =
+                    TileInput::<L>::tile_totals::<1, V>(input, shape, weight, &pixels, channel);
                 store::<L, 1, V>(&totals, 1, parameters, out, 0, overwrite);
                 channel += V * L::WIDTH;
             } else if channel + L::WIDTH <= out_channels {
-                let totals = input.tile_totals::<L, 1, 1>(shape, weight, &pixels, channel);
+                let totals =
+                    TileInput::<L>::tile_totals::<1, 1>(input, shape, weight, &pixels, channel);
                 store::<L, 1, 1>(&totals, 1, parameters, out, 0, overwrite);
                 channel += L::WIDTH;
             } else {
