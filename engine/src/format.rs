@@ -38,6 +38,14 @@ pub enum DType {
     /// value: half the integer products of [`DType::I8`]'s trunk layers. Only the residual
     /// blocks' convolutions, whose inputs are ReLU outputs, take it (docs/QUANTIZATION.md).
     I8Narrow = 2,
+    /// [`DType::I8`] with a second int8 plane after the first: the first plane's rounding
+    /// error quantized again, with its own per-channel scales (the scale tensor is
+    /// `[2, channels]`), so `value = q * scale + r * residual_scale`, about 15-bit weights.
+    /// The layer runs its convolution once per plane on the same input codes. Only the
+    /// residual blocks' convolutions take it.
+    I8Refined = 3,
+    /// [`DType::I8Narrow`]'s input codes with [`DType::I8Refined`]'s two weight planes.
+    I8NarrowRefined = 4,
 }
 
 impl DType {
@@ -46,6 +54,8 @@ impl DType {
             0 => Some(DType::F32),
             1 => Some(DType::I8),
             2 => Some(DType::I8Narrow),
+            3 => Some(DType::I8Refined),
+            4 => Some(DType::I8NarrowRefined),
             _ => None,
         }
     }
@@ -54,7 +64,13 @@ impl DType {
         match self {
             DType::F32 => 4,
             DType::I8 | DType::I8Narrow => 1,
+            DType::I8Refined | DType::I8NarrowRefined => 2,
         }
+    }
+
+    /// Whether the tensor holds a second weight plane ([`DType::I8Refined`]).
+    pub const fn is_refined(self) -> bool {
+        matches!(self, DType::I8Refined | DType::I8NarrowRefined)
     }
 }
 
@@ -377,8 +393,8 @@ impl<'w> WeightsFile<'w> {
         // An int8 convolution kernel is stored in input-channel quads, `in` padded to a
         // multiple of 4 (crate::shape::int8_quad_index).
         let stored = match dtype {
-            DType::I8 | DType::I8Narrow => int8_stored_elements(&dims[..rank]).ok_or(bad)?,
             DType::F32 => elements,
+            _ => int8_stored_elements(&dims[..rank]).ok_or(bad)?,
         };
         if stored.checked_mul(dtype.size()) != Some(byte_len) {
             return Err(bad);

@@ -5,7 +5,7 @@
 //! file's types and the kernels, which know neither the file nor the model.
 
 use crate::kernels::{Accumulate, ConvShape, DigitRows, Kernels, QuantizeScratch, TrunkCodes};
-use crate::weights::{ActivationCodes, Weight};
+use crate::weights::{ActivationCodes, MAX_REFINED_CHANNELS, Residual, Weight};
 
 /// How a layer with int8 weights reads 15-bit codes of its input (one scale for the whole
 /// input either way; the trunk's 8-bit layers are the pyramid's, [`convolve_codes`]).
@@ -17,6 +17,30 @@ pub enum Activations<'s, 'a> {
     /// Whole signed codes for 16-bit dot products (signed bytes where the file chose 8-bit
     /// codes): the U-Net, whose inputs have both signs.
     Codes(&'s mut QuantizeScratch<'a>),
+}
+
+/// What a refined layer's residual plane adds to the first plane's output (its bias is
+/// already there).
+static ZERO_BIAS: [f32; MAX_REFINED_CHANNELS] = [0.0; MAX_REFINED_CHANNELS];
+
+/// One int8 weight plane of a layer: its values and scales, the bias it adds and how it
+/// writes the output.
+pub type Plane<'p> = (&'p [i8], &'p [f32], &'p [f32], Accumulate);
+
+/// The int8 planes of a layer, run one after the other on the same input codes: the
+/// weights with the layer's bias and `accumulate`, then a refined layer's residual plane
+/// added without bias (the loader bounds its channels by [`MAX_REFINED_CHANNELS`]).
+pub fn planes<'p>(
+    (values, scales): (&'p [i8], &'p [f32]),
+    residual: Option<Residual<'p>>,
+    bias: &'p [f32],
+    accumulate: Accumulate,
+) -> impl Iterator<Item = Plane<'p>> {
+    let residual = residual.map(|residual| {
+        let zero = &ZERO_BIAS[..bias.len()];
+        (residual.values, residual.scales, zero, Accumulate::Add)
+    });
+    core::iter::once((values, scales, bias, accumulate)).chain(residual)
 }
 
 /// A convolution with whichever weights the file holds.
@@ -33,33 +57,44 @@ pub fn convolve(
 ) {
     let input = &input[..shape.input_len()];
     let output = &mut output[..shape.output_len()];
-    match (*weight, activations) {
-        (Weight::F32(values), _) => kernels.conv(shape, input, values, bias, output, accumulate),
-        (Weight::Int8 { values, scales, .. }, Activations::Digits(scratch)) => {
+    let (values, scales, codes, residual) = match *weight {
+        Weight::F32(values) => return kernels.conv(shape, input, values, bias, output, accumulate),
+        Weight::Int8 {
+            values,
+            scales,
+            activations,
+            residual,
+        } => (values, scales, activations, residual),
+    };
+    let planes = planes((values, scales), residual, bias, accumulate);
+    match (codes, activations) {
+        (_, Activations::Digits(scratch)) => {
             let digits = scratch.quantize(kernels, input);
-            kernels.conv_int8(shape, &digits, values, scales, bias, output, accumulate)
+            for (values, scales, bias, accumulate) in planes {
+                kernels.conv_int8(shape, &digits, values, scales, bias, output, accumulate)
+            }
         }
-        (
-            Weight::Int8 {
-                values,
-                scales,
-                activations: ActivationCodes::Narrow,
-            },
-            Activations::Codes(scratch),
-        ) => {
+        (ActivationCodes::Narrow, Activations::Codes(scratch)) => {
             let channels = shape.in_channels;
             if kernels.multiplies_signed_bytes() {
                 let codes = scratch.quantize_signed_bytes(kernels, input, channels);
-                kernels
-                    .conv_int8_signed_bytes(shape, &codes, values, scales, bias, output, accumulate)
+                for (values, scales, bias, accumulate) in planes {
+                    kernels.conv_int8_signed_bytes(
+                        shape, &codes, values, scales, bias, output, accumulate,
+                    )
+                }
             } else {
                 let codes = scratch.quantize_narrow_codes(kernels, input, channels);
-                kernels.conv_int8_codes(shape, &codes, values, scales, bias, output, accumulate)
+                for (values, scales, bias, accumulate) in planes {
+                    kernels.conv_int8_codes(shape, &codes, values, scales, bias, output, accumulate)
+                }
             }
         }
-        (Weight::Int8 { values, scales, .. }, Activations::Codes(scratch)) => {
+        (ActivationCodes::Wide, Activations::Codes(scratch)) => {
             let codes = scratch.quantize_codes(kernels, input, shape.in_channels);
-            kernels.conv_int8_codes(shape, &codes, values, scales, bias, output, accumulate)
+            for (values, scales, bias, accumulate) in planes {
+                kernels.conv_int8_codes(shape, &codes, values, scales, bias, output, accumulate)
+            }
         }
     }
 }
@@ -142,33 +177,34 @@ pub fn linear(
 }
 
 /// An int8 trunk convolution on its input's codes, in whichever form they were quantized
-/// to (`parameters`: the packed weights, their scales, the bias).
-pub fn convolve_codes(
+/// to, one weight plane after the other ([`planes`]).
+pub fn convolve_codes<'p>(
     kernels: &dyn Kernels,
     shape: &ConvShape,
     codes: &TrunkCodes<'_>,
-    (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
+    planes: impl Iterator<Item = Plane<'p>>,
     output: &mut [f32],
-    accumulate: Accumulate,
 ) {
-    match codes {
-        TrunkCodes::Digits(digits) => kernels.conv_int8(
-            shape,
-            digits,
-            weight,
-            weight_scales,
-            bias,
-            output,
-            accumulate,
-        ),
-        TrunkCodes::Bytes(bytes) => kernels.conv_int8_bytes(
-            shape,
-            bytes,
-            weight,
-            weight_scales,
-            bias,
-            output,
-            accumulate,
-        ),
+    for (weight, weight_scales, bias, accumulate) in planes {
+        match codes {
+            TrunkCodes::Digits(digits) => kernels.conv_int8(
+                shape,
+                digits,
+                weight,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            ),
+            TrunkCodes::Bytes(bytes) => kernels.conv_int8_bytes(
+                shape,
+                bytes,
+                weight,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            ),
+        }
     }
 }

@@ -116,10 +116,11 @@ impl<'v, 's, 'a> LayerInput<'v, 's, 'a> {
                 values,
                 scales,
                 activations,
+                residual,
             } => {
                 let codes = self.codes(kernels, activations);
-                let parameters = (values, scales, conv.bias);
-                layer::convolve_codes(kernels, shape, &codes, parameters, output, overwrite)
+                let planes = layer::planes((values, scales), residual, conv.bias, overwrite);
+                layer::convolve_codes(kernels, shape, &codes, planes, output)
             }
             Weight::F32(values) => {
                 let input = &self.values[..shape.input_len()];

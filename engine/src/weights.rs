@@ -60,7 +60,8 @@ pub enum ActivationCodes {
 }
 
 /// A weight tensor as stored: f32, or symmetric int8 with one scale per output channel
-/// (`value = q * scale`) and the codes its layer's input is quantized to.
+/// (`value = q * scale`, plus the residual plane's `r * residual_scale` where the file
+/// refined it) and the codes its layer's input is quantized to.
 #[derive(Clone, Copy, Debug)]
 pub enum Weight<'w> {
     F32(&'w [f32]),
@@ -68,8 +69,21 @@ pub enum Weight<'w> {
         values: &'w [i8],
         scales: &'w [f32],
         activations: ActivationCodes,
+        residual: Option<Residual<'w>>,
     },
 }
+
+/// The second plane of refined int8 weights ([`DType::I8Refined`]): the first plane's
+/// rounding error, quantized again with its own scales, in the first plane's layout.
+#[derive(Clone, Copy, Debug)]
+pub struct Residual<'w> {
+    pub values: &'w [i8],
+    pub scales: &'w [f32],
+}
+
+/// The most output channels a refined layer may have: its residual plane's convolution
+/// adds to the first plane's output with a zero bias of this length.
+pub const MAX_REFINED_CHANNELS: usize = 1024;
 
 impl Default for Weight<'_> {
     fn default() -> Self {
@@ -164,28 +178,49 @@ impl<'w> TensorSource<'w> for FileSource<'w> {
         let (index, entry) = self.next_entry(name, dims)?;
         let activations = match entry.dtype {
             DType::F32 => return Ok(Weight::F32(self.f32_data(index, &entry)?)),
-            DType::I8 => ActivationCodes::Wide,
-            DType::I8Narrow if narrow == NarrowCodes::Allowed => ActivationCodes::Narrow,
-            // A layer whose input may be negative, or is quantized for several readers
-            // at once, has no narrow path.
-            DType::I8Narrow => return Err(Error::UnexpectedTensor { index }),
+            DType::I8 | DType::I8Refined => ActivationCodes::Wide,
+            DType::I8Narrow | DType::I8NarrowRefined => ActivationCodes::Narrow,
         };
-        // An int8 convolution sums its codes exactly in i32 only up to MAX_DIGIT_CHANNELS
-        // inputs (the tool stores wider ones in f32).
-        if !crate::kernels::int8_fits(dims) {
+        let refined = entry.dtype.is_refined();
+        // A layer whose input may be negative, or is quantized for several readers at once,
+        // has no narrow path; only the residual blocks' convolutions, whose codes feed their
+        // own layer alone, run a second weight plane on them.
+        if (activations == ActivationCodes::Narrow || refined) && narrow == NarrowCodes::NotAllowed
+        {
             return Err(Error::UnexpectedTensor { index });
         }
-        let values = bytemuck::cast_slice(self.file.data(&entry));
-        let scales = self.f32_tensor(scale_name, &[channels])?;
+        // An int8 convolution sums its codes exactly in i32 only up to MAX_DIGIT_CHANNELS
+        // inputs (the tool stores wider ones in f32).
+        if !crate::kernels::int8_fits(dims) || (refined && channels > MAX_REFINED_CHANNELS) {
+            return Err(Error::UnexpectedTensor { index });
+        }
+        let values: &'w [i8] = bytemuck::cast_slice(self.file.data(&entry));
+        let scales = if refined {
+            self.f32_tensor(scale_name, &[2, channels])?
+        } else {
+            self.f32_tensor(scale_name, &[channels])?
+        };
         // A zero, negative or non-finite scale is not a quantization anyone wrote.
         if scales.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
             return Err(Error::UnexpectedTensor { index: index + 1 });
         }
         self.int8_seen = true;
+        let (values, scales, residual) = if refined {
+            let (values, residual_values) = values.split_at(values.len() / 2);
+            let (scales, residual_scales) = scales.split_at(channels);
+            let residual = Residual {
+                values: residual_values,
+                scales: residual_scales,
+            };
+            (values, scales, Some(residual))
+        } else {
+            (values, scales, None)
+        };
         Ok(Weight::Int8 {
             values,
             scales,
             activations,
+            residual,
         })
     }
 }

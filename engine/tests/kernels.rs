@@ -803,6 +803,7 @@ fn narrow_signed_code_convolution_equals_the_code_convolution_on_every_backend()
                 values: &code_case.packed,
                 scales: &code_case.weight_scales,
                 activations: ActivationCodes::Narrow,
+                residual: None,
             };
             layer::convolve(
                 kernels,
@@ -1794,14 +1795,9 @@ fn narrow_byte_convolution_is_bit_identical_on_every_backend() {
             let quantized = quantize.quantize_narrow(kernels, &values);
             let codes = quantize.view(&quantized);
             let mut output = vec![0.0; shape.output_len()];
-            scdp_engine::layer::convolve_codes(
-                kernels,
-                &shape,
-                &codes,
-                problem.parameters(),
-                &mut output,
-                Accumulate::Overwrite,
-            );
+            let (weight, scales, bias) = problem.parameters();
+            let planes = layer::planes((weight, scales), None, bias, Accumulate::Overwrite);
+            layer::convolve_codes(kernels, &shape, &codes, planes, &mut output);
             output
         };
         let expected = convolve(&Scalar);
@@ -2516,6 +2512,123 @@ fn int8_layout_places_every_weight_once_and_steps_quads_within_a_block() {
         assert!(
             seen.iter().all(|&s| s),
             "{taps} {in_channels} {out_channels}: a gap"
+        );
+    }
+}
+
+/// Symmetric int8 per output channel (the last axis) to nearest: the values and scales.
+fn quantize_per_output(weight: &[f32], out_channels: usize) -> (Vec<i8>, Vec<f32>) {
+    let mut largest = vec![0.0f32; out_channels];
+    for (index, value) in weight.iter().enumerate() {
+        let channel = index % out_channels;
+        largest[channel] = largest[channel].max(value.abs());
+    }
+    let scales: Vec<f32> = largest.iter().map(|m| m / 127.0).collect();
+    let values = weight
+        .iter()
+        .enumerate()
+        .map(|(index, value)| (value / scales[index % out_channels]).round() as i8)
+        .collect();
+    (values, scales)
+}
+
+/// A refined layer (its second weight plane the first plane's rounding error quantized
+/// again) through `layer::convolve` on the trunk's codes: every backend gives the scalar
+/// reference's bits, and the error from the f32 weights is at most 1/16 of the one-plane
+/// layer's. The residual's step is about 1/254 of the first plane's, so the weights' own
+/// error falls about 127x and what is left is mostly the 15-bit activation codes'; a
+/// residual plane skipped or scaled wrongly leaves the ratio near 1.
+#[test]
+fn a_refined_layer_adds_its_residual_plane() {
+    let mut rng = Lcg(0x5eed_2026);
+    let shape = ConvShape::square((6, 7, 32), 24, 3, 1, 1);
+    let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
+    let weight: Vec<f32> = rng.vec(shape.weight_len());
+    let bias = rng.vec(out_channels);
+    let input: Vec<f32> = (0..shape.input_len()).map(|_| rng.next().abs()).collect();
+    // `[taps, in, out]` in f64, from the f32 weights: what both layers approximate.
+    let mut reference = vec![0.0f64; shape.output_len()];
+    for y in 0..shape.out_height() {
+        for x in 0..shape.out_width() {
+            for o in 0..out_channels {
+                let mut sum = f64::from(bias[o]);
+                for ky in 0..3 {
+                    for kx in 0..3 {
+                        let (iy, ix) = ((y + ky) as isize - 1, (x + kx) as isize - 1);
+                        if iy < 0 || ix < 0 || iy >= 6 || ix >= 7 {
+                            continue;
+                        }
+                        for i in 0..in_channels {
+                            let value = input[(iy as usize * 7 + ix as usize) * in_channels + i];
+                            let w = weight[((ky * 3 + kx) * in_channels + i) * out_channels + o];
+                            sum += f64::from(value) * f64::from(w);
+                        }
+                    }
+                }
+                reference[(y * shape.out_width() + x) * out_channels + o] = sum;
+            }
+        }
+    }
+    let (first, scales) = quantize_per_output(&weight, out_channels);
+    let left: Vec<f32> = weight
+        .iter()
+        .zip(&first)
+        .enumerate()
+        .map(|(index, (w, q))| w - f32::from(*q) * scales[index % out_channels])
+        .collect();
+    let (second, residual_scales) = quantize_per_output(&left, out_channels);
+    let pack = |values: &[i8]| {
+        let mut packed = vec![0i8; shape.int8_weight_len()];
+        scdp_engine::kernels::pack_int8_quads(values, in_channels, out_channels, &mut packed);
+        packed
+    };
+    let (first, second) = (pack(&first), pack(&second));
+    let run = |kernels: &dyn Kernels, refined: bool| {
+        let weight = Weight::Int8 {
+            values: &first,
+            scales: &scales,
+            activations: ActivationCodes::Wide,
+            residual: refined.then_some(scdp_engine::weights::Residual {
+                values: &second,
+                scales: &residual_scales,
+            }),
+        };
+        let mut scratch = vec![0i8; 4 * shape.input_len() + 4096];
+        let mut quantize = QuantizeScratch {
+            values: &mut scratch,
+        };
+        let mut output = vec![0.0; shape.output_len()];
+        layer::convolve(
+            kernels,
+            &shape,
+            &input,
+            &weight,
+            &bias,
+            &mut output,
+            Accumulate::Overwrite,
+            layer::Activations::Digits(&mut quantize),
+        );
+        output
+    };
+    let largest_error = |found: &[f32]| {
+        found
+            .iter()
+            .zip(&reference)
+            .map(|(f, r)| (f64::from(*f) - r).abs())
+            .fold(0.0, f64::max)
+    };
+    let one_plane = largest_error(&run(&Scalar, false));
+    let expected = run(&Scalar, true);
+    let refined = largest_error(&expected);
+    assert!(
+        refined <= one_plane / 16.0,
+        "refined error {refined:.3e}, one plane {one_plane:.3e}"
+    );
+    for (name, kernels) in backends() {
+        assert_same_bits(
+            &run(kernels, true),
+            &expected,
+            &format!("refined on {name}"),
         );
     }
 }

@@ -83,6 +83,7 @@ fn int8_stem_over_patches_equals_the_7x7_convolution() {
                 values: &weight,
                 scales: &scales,
                 activations: ActivationCodes::Wide,
+                residual: None,
             },
             bias: &bias,
         },

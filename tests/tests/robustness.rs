@@ -1444,3 +1444,71 @@ fn narrow_activation_codes_are_refused_where_the_engine_has_no_narrow_path() {
     let actions = policy.infer(Noise::Given(&noise)).unwrap();
     assert!(actions.action_pred().iter().all(|a| a.is_finite()));
 }
+
+/// Makes `tensors[index]` (an int8 weight followed by its scales) a refined one: a second
+/// plane and its scales after the first's (here copies of them), the scale entry
+/// `[2, channels]` unless `scale_dims` says otherwise.
+fn refine(tensors: &mut [Tensor], index: usize, scale_dims: Option<Vec<usize>>) {
+    tensors[index].dtype = DType::I8Refined as u32;
+    tensors[index].data = tensors[index].data.repeat(2);
+    let channels = tensors[index + 1].dims[0];
+    tensors[index + 1].dims = scale_dims.unwrap_or(vec![2, channels]);
+    tensors[index + 1].data = tensors[index + 1].data.repeat(2);
+}
+
+/// A second weight plane is a residual-block convolution's: a file that gives one to a
+/// projection, a U-Net downsampling or a FiLM matrix is refused at that tensor's index, one
+/// whose scale entry is not `[2, channels]` at the scale's; on a residual block's
+/// convolution, in the trunk and in the U-Net, it loads and runs.
+#[test]
+fn refined_weights_are_refused_where_the_engine_has_no_second_plane() {
+    let file = synthetic_weights_file_as(&ModelConfig::TINY, 5, Quant::Int8).unwrap();
+    let index_of = |tensors: &[Tensor], name: &str| {
+        let index = tensors.iter().position(|t| t.name == name).unwrap();
+        assert_eq!(tensors[index].dtype, DType::I8 as u32, "{name}");
+        index
+    };
+    for name in [
+        "proj.0.weight",
+        "unet.down.0.downsample.weight",
+        "unet.mid.0.film.weight",
+    ] {
+        let mut tensors = tensors_of(file.as_slice());
+        let index = index_of(&tensors, name);
+        refine(&mut tensors, index, None);
+        let edited = rebuild_onto(file.as_slice(), &tensors);
+        let refused = Err(Error::UnexpectedTensor { index });
+        assert_eq!(load(&edited), refused, "{name}");
+    }
+    let name = "backbone.layer2.0.conv1.weight";
+    let mut tensors = tensors_of(file.as_slice());
+    let index = index_of(&tensors, name);
+    let channels = tensors[index + 1].dims[0];
+    refine(&mut tensors, index, Some(vec![2 * channels]));
+    let edited = rebuild_onto(file.as_slice(), &tensors);
+    let refused = Err(Error::UnexpectedTensor { index: index + 1 });
+    assert_eq!(load(&edited), refused, "{name} with flat scales");
+
+    let mut tensors = tensors_of(file.as_slice());
+    for name in [
+        "backbone.layer2.0.conv1.weight",
+        "unet.down.0.0.conv0.weight",
+    ] {
+        let index = index_of(&tensors, name);
+        refine(&mut tensors, index, None);
+    }
+    let edited = aligned_copy(&rebuild_onto(file.as_slice(), &tensors));
+    let model = Model::from_bytes(edited.as_slice()).unwrap();
+    let config = ModelConfig::TINY;
+    let mut arena = AlignedBytes::zeroed(ArenaPlan::new(&config).arena_bytes);
+    let mut policy = Policy::new(&model, arena.as_mut_slice()).unwrap();
+    policy.set_camera(good_camera());
+    let pixels = (config.image_height * config.image_width) as usize;
+    let frame: Vec<u8> = (0..3 * pixels).map(|i| (i % 251) as u8).collect();
+    policy
+        .push_observation(&frame, &vec![0.1; config.state_dim as usize])
+        .unwrap();
+    let noise = vec![0.5; (config.horizon * config.action_dim) as usize];
+    let actions = policy.infer(Noise::Given(&noise)).unwrap();
+    assert!(actions.action_pred().iter().all(|a| a.is_finite()));
+}

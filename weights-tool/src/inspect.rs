@@ -25,12 +25,28 @@ pub fn activation_code_counts(bytes: &[u8]) -> Result<(usize, usize)> {
             .entry(index)
             .map_err(|error| anyhow::anyhow!("{error}"))?;
         match entry.dtype {
-            DType::I8 => wide += 1,
-            DType::I8Narrow => narrow += 1,
+            DType::I8 | DType::I8Refined => wide += 1,
+            DType::I8Narrow | DType::I8NarrowRefined => narrow += 1,
             DType::F32 => {}
         }
     }
     Ok((wide, narrow))
+}
+
+/// How many weights of a file carry a second plane (dtypes `i16` and `i16a8`).
+pub fn refined_count(bytes: &[u8]) -> Result<usize> {
+    let aligned = crate::writer::aligned_copy(bytes);
+    let model =
+        Model::from_bytes(aligned.as_slice()).map_err(|error| anyhow::anyhow!("{error}"))?;
+    let file = model.file();
+    let mut refined = 0;
+    for index in 0..file.tensor_count() {
+        let entry = file
+            .entry(index)
+            .map_err(|error| anyhow::anyhow!("{error}"))?;
+        refined += usize::from(entry.dtype.is_refined());
+    }
+    Ok(refined)
 }
 
 /// A one-screen report: config, storage, arena plan, then the tensor table.
@@ -82,14 +98,26 @@ pub fn report(bytes: &[u8]) -> Result<String> {
         writeln!(
             out,
             "int8 activations: {} layers on 15-bit codes (i8), {} on 8-bit codes (i8a8, docs/QUANTIZATION.md)",
-            count(DType::I8),
-            count(DType::I8Narrow)
+            count(DType::I8) + count(DType::I8Refined),
+            count(DType::I8Narrow) + count(DType::I8NarrowRefined)
         )?;
         for entry in entries
             .iter()
-            .filter(|entry| entry.dtype == DType::I8Narrow)
+            .filter(|entry| matches!(entry.dtype, DType::I8Narrow | DType::I8NarrowRefined))
         {
             writeln!(out, "  8-bit  {}", entry.name)?;
+        }
+        let refined: Vec<_> = entries
+            .iter()
+            .filter(|entry| entry.dtype.is_refined())
+            .collect();
+        writeln!(
+            out,
+            "int8 weights: {} layers refined by a second plane (i16, i16a8: about 15-bit weights)",
+            refined.len()
+        )?;
+        for entry in refined {
+            writeln!(out, "  refined  {}", entry.name)?;
         }
         writeln!(out)?;
     }
@@ -105,6 +133,8 @@ pub fn report(bytes: &[u8]) -> Result<String> {
             DType::F32 => "f32",
             DType::I8 => "i8",
             DType::I8Narrow => "i8a8",
+            DType::I8Refined => "i16",
+            DType::I8NarrowRefined => "i16a8",
         };
         writeln!(
             out,
