@@ -192,8 +192,9 @@ pub const CALIBRATION_SEED: u64 = 7;
 
 /// [`synthetic_weights_file`] as int8 with GPTQ rounding, calibrated on
 /// [`CALIBRATION_SCENES`] synthetic scenes seen through `fixture`'s camera (a deployment
-/// constant: the camera the policy runs with is the one it is calibrated with).
-pub fn calibrated_int8_weights_file(fixture: &Fixture) -> Result<AlignedBytes> {
+/// constant: the camera the policy runs with is the one it is calibrated with); the same
+/// rounding written twice, with one weight plane and with the trunk refined.
+pub fn calibrated_int8_weights_files(fixture: &Fixture) -> Result<CalibratedFiles> {
     use weights_tool::lowering::{self, Rounding};
     let config = &fixture.config;
     let state = weights_tool::synth::synth_state_dict(config, fixture.seed);
@@ -213,14 +214,28 @@ pub fn calibrated_int8_weights_file(fixture: &Fixture) -> Result<AlignedBytes> {
         CALIBRATION_SEED,
     );
     let moments = lowering::calibrate(config, &lowered, &scenes, false)?;
-    let stored = lowering::store(
+    let mut stored = lowering::store(
         config,
         lowered,
         weights_tool::Quant::Int8,
         Rounding::Calibrated(&moments),
     )?;
-    let bytes = weights_tool::writer::write_weights_file(config, &stored)?;
-    Ok(weights_tool::writer::aligned_copy(&bytes))
+    let plain = weights_tool::writer::write_weights_file(config, &stored)?;
+    let names = weights_tool::refine::candidates(&stored);
+    weights_tool::refine::set_refined(&mut stored, &names, true);
+    let refined = weights_tool::writer::write_weights_file(config, &stored)?;
+    Ok(CalibratedFiles {
+        plain: weights_tool::writer::aligned_copy(&plain),
+        refined_trunk: weights_tool::writer::aligned_copy(&refined),
+    })
+}
+
+/// The GPTQ-rounded int8 files of a golden case's weights.
+pub struct CalibratedFiles {
+    /// One int8 plane a weight, 15-bit activation codes everywhere.
+    pub plain: AlignedBytes,
+    /// The same, with every residual-block layer of the trunk refined by its second plane.
+    pub refined_trunk: AlignedBytes,
 }
 
 /// Everything an inference showed its observer, step by step.

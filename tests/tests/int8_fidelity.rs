@@ -10,12 +10,14 @@
 //!   and panda, on every kernel backend this CPU has, for the int8 weights `convert` writes
 //!   when given calibration scenes (GPTQ rounding, calibrated on synthetic scenes through
 //!   the case's camera, never on the case's own inputs);
+//! - the same for that file with every trunk residual-block layer refined by its second
+//!   weight plane (`convert --refine trunk`);
 //! - GPTQ's mean error is below round-to-nearest's on every case (what calibrating buys);
 //! - the panda int8 weights file is at most 30 MB (the product's size floor).
 
 use scdp_engine::ArenaPlan;
 use scdp_tests::{
-    Fixture, available_backends, calibrated_int8_weights_file, golden_fixtures, run_engine,
+    Fixture, available_backends, calibrated_int8_weights_files, golden_fixtures, run_engine,
     run_engine_with, synthetic_weights_file_as,
 };
 use weights_tool::Quant;
@@ -83,7 +85,8 @@ fn config_report(config_name: &str, cases: &[(String, std::path::PathBuf)]) -> C
             synthetic_weights_file_as(&fixture.config, fixture.seed, Quant::F32).unwrap();
         let nearest =
             synthetic_weights_file_as(&fixture.config, fixture.seed, Quant::Int8).unwrap();
-        let gptq = gptq.get_or_insert_with(|| calibrated_int8_weights_file(&fixture).unwrap());
+        let files = gptq.get_or_insert_with(|| calibrated_int8_weights_files(&fixture).unwrap());
+        let gptq = &files.plain;
         report
             .sizes
             .push(((config_name.to_owned(), "f32"), f32_file.as_slice().len()));
@@ -99,16 +102,25 @@ fn config_report(config_name: &str, cases: &[(String, std::path::PathBuf)]) -> C
         for backend in available_backends() {
             let run = run_engine_with(gptq.as_slice(), &fixture, backend).unwrap();
             let (max, mean) = action_errors(&fixture, &run.action_pred);
+            let refined = files.refined_trunk.as_slice();
+            let refined = run_engine_with(refined, &fixture, backend).unwrap();
+            let (refined_max, refined_mean) = action_errors(&fixture, &refined.action_pred);
             let px = anchor_error(&fixture, &run.recorded.anchors_uv);
             let case = format!("{name} {backend:?}");
             let met = max <= FLOOR_MAX && mean <= FLOOR_MEAN;
+            let refined_met = refined_max <= FLOOR_MAX && refined_mean <= FLOOR_MEAN;
             report.lines.push(format!(
-                "{case:<16} {f32_max:>9.2e} {f32_mean:>9.2e} {f32_px:>7.4} | {nearest_max:>9.2e} {nearest_mean:>9.2e} | {max:>9.2e} {mean:>9.2e} {px:>7.4}  {}",
-                if met { "met" } else { "not met" }
+                "{case:<16} {f32_max:>9.2e} {f32_mean:>9.2e} {f32_px:>7.4} | {nearest_max:>9.2e} {nearest_mean:>9.2e} | {max:>9.2e} {mean:>9.2e} {px:>7.4} | {refined_max:>9.2e} {refined_mean:>9.2e}  {}",
+                if met && refined_met { "met" } else { "not met" }
             ));
             if config_name != "tiny" && !met {
                 report.failures.push(format!(
                     "{case}: int8 max {max:.3e} (floor {FLOOR_MAX}), mean {mean:.3e} (floor {FLOOR_MEAN})"
+                ));
+            }
+            if config_name != "tiny" && !refined_met {
+                report.failures.push(format!(
+                    "{case}: int8 with the trunk refined max {refined_max:.3e} (floor {FLOOR_MAX}), mean {refined_mean:.3e} (floor {FLOOR_MEAN})"
                 ));
             }
             if mean >= nearest_mean {
@@ -125,7 +137,7 @@ fn config_report(config_name: &str, cases: &[(String, std::path::PathBuf)]) -> C
 fn int8_fidelity_meets_the_floor_on_every_backend() {
     let mut failures = Vec::new();
     println!(
-        "{:<16} {:>9} {:>9} {:>7} | {:>9} {:>9} | {:>9} {:>9} {:>7}  (floor: max {FLOOR_MAX}, mean {FLOOR_MEAN})",
+        "{:<16} {:>9} {:>9} {:>7} | {:>9} {:>9} | {:>9} {:>9} {:>7} | {:>9} {:>9}  (floor: max {FLOOR_MAX}, mean {FLOOR_MEAN})",
         "case",
         "f32 max",
         "f32 mean",
@@ -134,7 +146,9 @@ fn int8_fidelity_meets_the_floor_on_every_backend() {
         "rtn mean",
         "int8 max",
         "int8 mean",
-        "int8 px"
+        "int8 px",
+        "i16t max",
+        "i16t mean"
     );
     // One thread per config (calibration is most of the time; CI has two cores), the
     // report printed in fixture order afterwards.

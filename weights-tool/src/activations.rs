@@ -128,7 +128,7 @@ pub const NOISE_DRAWS: usize = 8;
 
 /// The predicted actions of a weights file on every scene, for [`NOISE_DRAWS`] noise seeds
 /// each (the same seeds for every file).
-fn actions(file: &[u8], scenes: &[RunInputs]) -> Result<Vec<Vec<f32>>> {
+pub(crate) fn actions(file: &[u8], scenes: &[RunInputs]) -> Result<Vec<Vec<f32>>> {
     let mut runner = Runner::new(file)?;
     let mut all = Vec::with_capacity(scenes.len() * NOISE_DRAWS);
     for (index, scene) in scenes.iter().enumerate() {
@@ -141,7 +141,11 @@ fn actions(file: &[u8], scenes: &[RunInputs]) -> Result<Vec<Vec<f32>>> {
 }
 
 /// The error of `found` against `reference`, each value times its dimension's `scale`.
-fn action_error(found: &[Vec<f32>], reference: &[Vec<f32>], scale: &[f32]) -> ActionError {
+pub(crate) fn action_error(
+    found: &[Vec<f32>],
+    reference: &[Vec<f32>],
+    scale: &[f32],
+) -> ActionError {
     let (mut max, mut sum, mut count) = (0.0f64, 0.0f64, 0usize);
     for (found, reference) in found.iter().zip(reference) {
         for (index, (a, b)) in found.iter().zip(reference).enumerate() {

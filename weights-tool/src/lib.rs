@@ -13,6 +13,7 @@ pub mod inspect;
 pub mod keys;
 pub mod lowering;
 pub mod quant;
+pub mod refine;
 pub mod remap;
 pub mod run;
 pub mod safetensors_io;

@@ -13,11 +13,11 @@ use std::collections::BTreeMap;
 
 use anyhow::{Context, Result, bail, ensure};
 use scdp_engine::config::{BackboneNorm, ModelConfig, UNET_LEVELS};
-use scdp_engine::weights::ActivationCodes;
+use scdp_engine::weights::{ActivationCodes, NarrowCodes};
 
 use crate::gptq::ChannelAxis;
 use crate::quant::Quant;
-use crate::writer::Stored;
+use crate::writer::{ResidualPlane, Stored};
 
 /// A PyTorch tensor as the lowering reads it: shape and row-major values.
 pub struct TensorRef<'a> {
@@ -633,10 +633,36 @@ pub fn int8_kept_f32(config: &ModelConfig) -> Vec<(&'static str, &'static str)> 
     kept
 }
 
+/// What int8 rounding left of `values` (`values - quantized * scale`), quantized again per
+/// channel to nearest: with it the weights are about 15 bits.
+fn residual_plane(
+    values: &[f32],
+    quantized: &[i8],
+    scales: &[f32],
+    axis: ChannelAxis,
+) -> ResidualPlane {
+    let channels = scales.len();
+    let per_channel = values.len() / channels;
+    let channel_of = |index: usize| match axis {
+        ChannelAxis::First => index / per_channel,
+        ChannelAxis::Last => index % channels,
+    };
+    let left: Vec<f32> = values
+        .iter()
+        .zip(quantized)
+        .enumerate()
+        .map(|(index, (&value, &q))| {
+            (f64::from(value) - f64::from(q) * f64::from(scales[channel_of(index)])) as f32
+        })
+        .collect();
+    let (values, scales) = quantize_per_channel(&left, channels, axis);
+    ResidualPlane { values, scales }
+}
+
 /// Symmetric int8 with one scale per channel: `scale = max |w| / 127` over the channel,
 /// `q = round(w / scale)`. Channels are the last axis (convolutions, `[.., out]`) or, with
 /// `ChannelAxis::First`, the first (FiLM matrices, one row per output).
-fn quantize_per_channel(values: &[f32], channels: usize, axis: ChannelAxis) -> Stored {
+fn quantize_per_channel(values: &[f32], channels: usize, axis: ChannelAxis) -> (Vec<i8>, Vec<f32>) {
     let per_channel = values.len() / channels;
     let channel_of = |index: usize| match axis {
         ChannelAxis::First => index / per_channel,
@@ -661,11 +687,7 @@ fn quantize_per_channel(values: &[f32], channels: usize, axis: ChannelAxis) -> S
                 .clamp(-127.0, 127.0) as i8
         })
         .collect();
-    Stored::Int8 {
-        values: quantized,
-        scales,
-        activations: ActivationCodes::Wide,
-    }
+    (quantized, scales)
 }
 
 /// How int8 weights are rounded.
@@ -751,41 +773,47 @@ pub fn store_keeping(
                 } else {
                     ChannelAxis::Last
                 };
-                let mut quantized = quantize_per_channel(&values, channels, axis);
-                if let (
-                    Rounding::Calibrated(moments),
-                    Stored::Int8 {
-                        values: q, scales, ..
-                    },
-                ) = (rounding, &mut quantized)
+                let (mut quantized, scales) = quantize_per_channel(&values, channels, axis);
+                if let Rounding::Calibrated(moments) = rounding
                     && let Some(moment) = moments.get(&name)
                 {
-                    *q = crate::gptq::quantize(&values, scales, axis, moment, GPTQ_DAMPING)
+                    quantized = crate::gptq::quantize(&values, &scales, axis, moment, GPTQ_DAMPING)
                         .with_context(|| format!("GPTQ rounding of `{name}`"))?;
                 }
+                // The residual blocks' convolutions may be refined by a second plane (whether
+                // they are is measured later, `crate::refine`): what the rounding left.
+                let residual = (spec.narrow == NarrowCodes::Allowed)
+                    .then(|| residual_plane(&values, &quantized, &scales, axis));
                 // Convolutions take int8 activations: their kernels go to the layout of the
                 // integer dot products (docs/FORMAT.md); FiLM matrices stay as they are.
-                let taps_in_out = scdp_engine::kernels::int8_convolution(&spec.dims);
-                match (quantized, taps_in_out) {
-                    (
-                        Stored::Int8 {
-                            values,
-                            scales,
-                            activations,
-                        },
-                        Some((_, input, output)),
-                    ) => {
+                let (values, residual) = match scdp_engine::kernels::int8_convolution(&spec.dims) {
+                    Some((_, input, output)) => {
                         let stored = scdp_engine::kernels::int8_stored_elements(&spec.dims)
                             .with_context(|| format!("size of `{name}`"))?;
-                        let mut packed = vec![0i8; stored];
-                        scdp_engine::kernels::pack_int8_quads(&values, input, output, &mut packed);
-                        Stored::Int8 {
-                            values: packed,
-                            scales,
-                            activations,
-                        }
+                        let pack = |values: &[i8]| {
+                            let mut packed = vec![0i8; stored];
+                            scdp_engine::kernels::pack_int8_quads(
+                                values,
+                                input,
+                                output,
+                                &mut packed,
+                            );
+                            packed
+                        };
+                        let residual = residual.map(|residual| ResidualPlane {
+                            values: pack(&residual.values),
+                            scales: residual.scales,
+                        });
+                        (pack(&quantized), residual)
                     }
-                    (quantized, _) => quantized,
+                    None => (quantized, residual),
+                };
+                Stored::Int8 {
+                    values,
+                    scales,
+                    activations: ActivationCodes::Wide,
+                    residual,
+                    refined: false,
                 }
             }
             _ => Stored::F32(values),

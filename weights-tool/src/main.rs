@@ -122,6 +122,13 @@ struct ConvertArgs {
     /// mean, 0.005 normalized.
     #[arg(long, value_name = "FRACTION", default_value_t = weights_tool::activations::Budget::DEFAULT.mean_increase)]
     action_budget: f64,
+    /// With `--quant int8`: which of the trunk's residual-block layers store their rounding
+    /// error as a second int8 plane (about 15-bit weights, twice the layer's integer
+    /// products). `measured`: only where the calibration scenes' actions would otherwise
+    /// leave `--action-budget` of the file with every trunk layer refined; `none`; `trunk`:
+    /// every one of them.
+    #[arg(long, value_enum, default_value_t = RefineArg::Measured)]
+    refine: RefineArg,
     /// Output weights file.
     #[arg(short, long, value_name = "MODEL.scdp")]
     output: PathBuf,
@@ -134,6 +141,16 @@ enum RoundingArg {
     Gptq,
     /// Each weight to the nearest step, no calibration.
     Nearest,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum RefineArg {
+    /// Refined where the actions need it, measured on the calibration scenes.
+    Measured,
+    /// One int8 plane everywhere.
+    None,
+    /// Every residual-block layer of the trunk refined.
+    Trunk,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -234,16 +251,17 @@ fn calibration_scenes(
 /// round-to-nearest was asked for by name.
 const INT8_NEEDS_SCENES: &str = "--quant int8 rounds with GPTQ and measures the activation widths on calibration scenes: pass --calibrate RUN.safetensors... (observations recorded on the robot) and/or --synthetic-scenes N --camera RUN.safetensors, or --rounding nearest for an uncalibrated file (it misses the fidelity floor, docs/QUANTIZATION.md)";
 
-/// An int8 weights file: rounded as asked, its activation widths as asked (measured on
-/// `scenes` by default); returns the file and the width report when measured.
+/// An int8 weights file: rounded as asked, its refined layers and then its activation widths
+/// as asked (measured on `scenes` by default); returns the file and what was measured.
 fn int8_weights_file(
     args: &ConvertArgs,
     config: &scdp_engine::ModelConfig,
     state_dict: &weights_tool::StateDict,
     scenes: &[weights_tool::run::RunInputs],
-) -> anyhow::Result<(Vec<u8>, Option<weights_tool::activations::WidthReport>)> {
+) -> anyhow::Result<Int8File> {
     use weights_tool::activations::{self, Budget};
     use weights_tool::lowering::{self, Rounding};
+    use weights_tool::refine;
     use weights_tool::writer::write_weights_file;
     anyhow::ensure!(
         !scenes.is_empty() || args.rounding == RoundingArg::Nearest,
@@ -271,6 +289,32 @@ fn int8_weights_file(
     let spinner = spinner("rounding");
     let mut stored = lowering::store(config, lowered, Quant::Int8, rounding)?;
     spinner.finish_and_clear();
+    let budget = Budget::with_increase(args.action_budget);
+    let refinement = match args.refine {
+        RefineArg::None => None,
+        RefineArg::Measured if scenes.is_empty() => None,
+        RefineArg::Trunk => {
+            let names = refine::candidates(&stored);
+            refine::set_refined(&mut stored, &names, true);
+            None
+        }
+        RefineArg::Measured => {
+            let bar = progress_bar("measuring weight refinement");
+            let report = refine::choose(
+                config,
+                &mut stored,
+                &f32_file,
+                scenes,
+                budget,
+                |done, total| {
+                    bar.set_length(total as u64);
+                    bar.set_position(done as u64);
+                },
+            )?;
+            bar.finish_and_clear();
+            Some(report)
+        }
+    };
     let report = match args.activations {
         ActivationsArg::Wide => None,
         ActivationsArg::Measured if scenes.is_empty() => None,
@@ -279,12 +323,7 @@ fn int8_weights_file(
             None
         }
         ActivationsArg::Measured => {
-            let bar = ProgressBar::new(0).with_style(
-                ProgressStyle::with_template("measuring activation widths [{bar:30}] {pos}/{len}")
-                    .expect("valid template")
-                    .progress_chars("=> "),
-            );
-            let budget = Budget::with_increase(args.action_budget);
+            let bar = progress_bar("measuring activation widths");
             let report = activations::choose(
                 config,
                 &mut stored,
@@ -300,7 +339,61 @@ fn int8_weights_file(
             Some(report)
         }
     };
-    Ok((write_weights_file(config, &stored)?, report))
+    Ok(Int8File {
+        bytes: write_weights_file(config, &stored)?,
+        widths: report,
+        refinement,
+    })
+}
+
+/// An int8 weights file and what was measured to make it.
+struct Int8File {
+    bytes: Vec<u8>,
+    widths: Option<weights_tool::activations::WidthReport>,
+    refinement: Option<weights_tool::refine::RefineReport>,
+}
+
+/// `convert`'s lines about an int8 file's refined layers.
+fn print_refinement(
+    args: &ConvertArgs,
+    bytes: &[u8],
+    report: Option<&weights_tool::refine::RefineReport>,
+) {
+    let Some(report) = report else {
+        let refined = weights_tool::inspect::refined_count(bytes).unwrap_or_default();
+        let why = match args.refine {
+            RefineArg::None => "none (--refine none)",
+            RefineArg::Trunk => "every trunk residual-block layer (--refine trunk)",
+            RefineArg::Measured => "none (no calibration scenes to measure on)",
+        };
+        println!("  refined        {why}: {refined} layers");
+        return;
+    };
+    println!(
+        "  refined        measured on {} calibration scenes x {} noise draws against the f32 model (normalized actions); budget: mean at most {:.0}% over every trunk layer refined",
+        report.scenes,
+        weights_tool::activations::NOISE_DRAWS,
+        100.0 * report.budget.mean_increase,
+    );
+    println!("                 none refined: {}", report.none);
+    println!("                 every trunk layer refined: {}", report.all);
+    let chosen = report.layers.iter().filter(|layer| layer.refined).count();
+    println!(
+        "                 chosen, {chosen} of {} trunk layers refined: {}",
+        report.layers.len(),
+        report.chosen
+    );
+    for layer in &report.layers {
+        let (what, why) = if layer.refined {
+            ("refined", "needed to stay within the budget")
+        } else {
+            ("one plane", "within the budget without it")
+        };
+        println!(
+            "  {what:<9}      {:<40} alone: {}; {why}",
+            layer.name, layer.alone
+        );
+    }
 }
 
 /// `convert`'s lines about an int8 file's activation codes.
@@ -383,19 +476,24 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
         scenes.is_empty() || quant == Quant::Int8,
         "calibration scenes only apply to --quant int8"
     );
-    let (bytes, report) = match quant {
+    let int8 = match quant {
         Quant::F32 => {
             let spinner = spinner("converting to f32");
             let bytes = weights_tool::lowering::lower_to_weights_file(&config, &state_dict, quant);
             spinner.finish_and_clear();
-            (bytes, None)
+            bytes.map(|bytes| Int8File {
+                bytes,
+                widths: None,
+                refinement: None,
+            })
         }
-        Quant::Int8 => match int8_weights_file(args, &config, &state_dict, &scenes) {
-            Ok((bytes, report)) => (Ok(bytes), report),
-            Err(error) => (Err(error), None),
-        },
+        Quant::Int8 => int8_weights_file(args, &config, &state_dict, &scenes),
     };
-    let bytes = bytes.with_context(|| format!("converting {}", args.checkpoint.display()))?;
+    let Int8File {
+        bytes,
+        widths: report,
+        refinement,
+    } = int8.with_context(|| format!("converting {}", args.checkpoint.display()))?;
     std::fs::write(&args.output, &bytes)
         .with_context(|| format!("{}: cannot write", args.output.display()))?;
     let plan = scdp_engine::ArenaPlan::new(&config);
@@ -418,6 +516,7 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
                 weights_tool::lowering::GPTQ_DAMPING
             ),
         }
+        print_refinement(args, &bytes, refinement.as_ref());
         print_activations(args, &bytes, report.as_ref());
         for (name, why) in weights_tool::lowering::int8_kept_f32(&config) {
             println!("  kept f32       {name}: {why}");
@@ -525,6 +624,15 @@ fn read_with_progress(path: &Path) -> anyhow::Result<weights_tool::StateDict> {
 }
 
 /// A spinner for steps with no count to show; drawn only when stderr is a terminal.
+/// A bar of measured files, its length set by the first update.
+fn progress_bar(what: &str) -> ProgressBar {
+    ProgressBar::new(0).with_style(
+        ProgressStyle::with_template(&format!("{what} [{{bar:30}}] {{pos}}/{{len}}"))
+            .expect("valid template")
+            .progress_chars("=> "),
+    )
+}
+
 fn spinner(message: &str) -> ProgressBar {
     let spinner = ProgressBar::new_spinner().with_message(message.to_owned());
     spinner.enable_steady_tick(Duration::from_millis(100));

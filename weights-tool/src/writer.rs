@@ -31,12 +31,23 @@ pub struct TensorSpec {
 pub enum Stored {
     F32(Vec<f32>),
     /// Symmetric int8 with one scale per output channel, and the codes the layer
-    /// quantizes its input to.
+    /// quantizes its input to; for the residual blocks' convolutions also the plane that
+    /// refines them, written only when `refined` (`DType::I8Refined`).
     Int8 {
         values: Vec<i8>,
         scales: Vec<f32>,
         activations: ActivationCodes,
+        residual: Option<ResidualPlane>,
+        refined: bool,
     },
+}
+
+/// The rounding error of an int8 weight tensor quantized again: int8 values in the same
+/// layout, one scale per output channel.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ResidualPlane {
+    pub values: Vec<i8>,
+    pub scales: Vec<f32>,
 }
 
 /// Records the names and shapes the engine's binder requests.
@@ -136,40 +147,66 @@ pub fn write_weights_file(
                 values,
                 scales,
                 activations,
+                residual,
+                refined,
             } => {
                 let Some((scale_name, channels)) = &spec.int8_scales else {
                     bail!("internal: `{}` cannot be stored as int8", spec.name);
                 };
-                let dtype = match activations {
-                    ActivationCodes::Wide => DType::I8,
-                    ActivationCodes::Narrow => DType::I8Narrow,
+                let residual = match (refined, residual) {
+                    (false, _) => None,
+                    (true, Some(residual)) => Some(residual),
+                    (true, None) => bail!("internal: `{}` has no residual plane", spec.name),
+                };
+                let dtype = match (activations, residual.is_some()) {
+                    (ActivationCodes::Wide, false) => DType::I8,
+                    (ActivationCodes::Narrow, false) => DType::I8Narrow,
+                    (ActivationCodes::Wide, true) => DType::I8Refined,
+                    (ActivationCodes::Narrow, true) => DType::I8NarrowRefined,
                 };
                 ensure!(
                     dtype == DType::I8 || spec.narrow == NarrowCodes::Allowed,
-                    "internal: `{}` cannot take narrow activations",
+                    "internal: `{}` cannot take narrow activations or a residual plane",
                     spec.name
                 );
                 // Convolution kernels are stored in input-channel quads (docs/FORMAT.md).
                 let stored_elements =
                     scdp_engine::kernels::int8_stored_elements(&spec.dims).unwrap_or(elements);
+                let planes = [
+                    Some((values, scales)),
+                    residual.map(|r| (&r.values, &r.scales)),
+                ];
+                let planes: Vec<_> = planes.into_iter().flatten().collect();
                 ensure!(
-                    values.len() == stored_elements && scales.len() == *channels,
+                    planes.iter().all(|(values, scales)| {
+                        values.len() == stored_elements && scales.len() == *channels
+                    }),
                     "internal: int8 `{}` does not match {:?}",
                     spec.name,
                     spec.dims
                 );
                 any_int8 = true;
+                let scale_dims = match planes.len() {
+                    1 => vec![*channels],
+                    count => vec![count, *channels],
+                };
                 entries.push(Entry {
                     name: &spec.name,
                     dims: spec.dims.clone(),
                     dtype,
-                    bytes: values.iter().map(|&v| v as u8).collect(),
+                    bytes: planes
+                        .iter()
+                        .flat_map(|(values, _)| values.iter().map(|&v| v as u8))
+                        .collect(),
                 });
                 entries.push(Entry {
                     name: scale_name,
-                    dims: vec![*channels],
+                    dims: scale_dims,
                     dtype: DType::F32,
-                    bytes: scales.iter().flat_map(|v| v.to_le_bytes()).collect(),
+                    bytes: planes
+                        .iter()
+                        .flat_map(|(_, scales)| scales.iter().flat_map(|v| v.to_le_bytes()))
+                        .collect(),
                 });
             }
         }

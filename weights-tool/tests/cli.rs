@@ -387,9 +387,9 @@ fn bad_inputs_give_one_clear_error_line() {
 
 /// `convert --quant int8` calibrated on recorded and synthetic scenes writes a weights file
 /// the engine loads, says how it rounded and which activation codes each residual-block
-/// layer got, and differs from round-to-nearest, which is written only when asked for by
-/// name; without scenes `--quant int8` refuses and says what to pass; calibration options
-/// that cannot apply are refused.
+/// layer got and which trunk layers were refined, and differs from round-to-nearest, which
+/// is written only when asked for by name; without scenes `--quant int8` refuses and says
+/// what to pass; calibration options that cannot apply are refused.
 #[test]
 fn convert_calibrates_int8_rounding_on_scenes() {
     let dir = tempfile::tempdir().unwrap();
@@ -427,6 +427,7 @@ fn convert_calibrates_int8_rounding_on_scenes() {
     let output = convert(&[&int8[..], &scenes[..]].concat(), &calibrated);
     assert!(output.status.success(), "{}", text(&output.stderr));
     let stdout = text(&output.stdout);
+    let refined_chosen = refinements_chosen(&stdout);
     assert!(
         stdout.contains("GPTQ, calibrated on 3 scenes (1 recorded, 2 synthetic)"),
         "{stdout}"
@@ -435,15 +436,25 @@ fn convert_calibrates_int8_rounding_on_scenes() {
         stdout.contains("activations    measured on 3 calibration scenes"),
         "{stdout}"
     );
-    // The residual-block layers, each with its measured effect and choice: the trunk's 19
-    // and the U-Net's 24 (12 blocks of two convolutions).
-    for (part, layers) in [("backbone.layer", 19), ("unet.", 24)] {
-        let decided = stdout
+    // The residual-block layers, each with its measured effect and choice: the activation
+    // codes of the trunk's 19 and the U-Net's 24 (12 blocks of two convolutions), and the
+    // refinement of the trunk's.
+    let decided = |kinds: &[&str], part: &str| {
+        stdout
             .lines()
+            .filter(|line| kinds.iter().any(|kind| line.starts_with(kind)))
             .filter(|line| line.contains("alone: max") && line.contains(part))
-            .count();
-        assert_eq!(decided, layers, "{part}: {stdout}");
+            .count()
+    };
+    for (part, layers) in [("backbone.layer", 19), ("unet.", 24)] {
+        assert_eq!(
+            decided(&["  8-bit", "  15-bit"], part),
+            layers,
+            "{part}: {stdout}"
+        );
     }
+    let refinements = decided(&["  refined", "  one plane"], "backbone.layer");
+    assert_eq!(refinements, 19, "{stdout}");
 
     // The chosen mix honours the budget it printed: its mean action error at most the
     // allowed fraction above the 15-bit file's, for the default budget and for none at all;
@@ -458,16 +469,23 @@ fn convert_calibrates_int8_rounding_on_scenes() {
         } else {
             stdout
         };
-        let mean_after = |prefix: &str| -> f64 {
+        let mean_after = |prefix: &str, containing: &str| -> f64 {
             let line = stdout
                 .lines()
-                .find(|line| line.trim_start().starts_with(prefix));
+                .find(|line| line.trim_start().starts_with(prefix) && line.contains(containing));
             let line = line.unwrap_or_else(|| panic!("no `{prefix}` line: {stdout}"));
             line.rsplit("mean ").next().unwrap().trim().parse().unwrap()
         };
-        let wide = mean_after("15-bit everywhere:");
-        let chosen = mean_after("chosen,");
+        // The printed means have three digits: 1% of slack for their rounding.
+        let wide = mean_after("15-bit everywhere:", "");
+        let chosen = mean_after("chosen,", "8-bit");
         assert!(chosen <= wide * (1.0 + budget) * (1.0 + 1e-2), "{stdout}");
+        let all_refined = mean_after("every trunk layer refined:", "");
+        let chosen = mean_after("chosen,", "refined");
+        assert!(
+            chosen <= all_refined * (1.0 + budget) * (1.0 + 1e-2),
+            "{stdout}"
+        );
     }
 
     let refused = convert(&int8, &path("refused.scdp"));
@@ -488,12 +506,13 @@ fn convert_calibrates_int8_rounding_on_scenes() {
         "{stdout}"
     );
     let wide = path("wide.scdp");
-    let wide_args = [&int8[..], &scenes[..], &["--activations", "wide"]].concat();
+    let one_plane = ["--activations", "wide", "--refine", "none"];
+    let wide_args = [&int8[..], &scenes[..], &one_plane[..]].concat();
     assert!(convert(&wide_args, &wide).status.success());
     let calibrated = std::fs::read(&calibrated).unwrap();
     let nearest = std::fs::read(&nearest).unwrap();
     let wide = std::fs::read(&wide).unwrap();
-    assert_eq!(calibrated.len(), nearest.len());
+    assert_eq!(wide.len(), nearest.len());
     assert_ne!(wide, nearest, "GPTQ changed no weight");
     let aligned = weights_tool::writer::aligned_copy(&calibrated);
     scdp_engine::Model::from_bytes(aligned.as_slice()).expect("calibrated file loads");
@@ -518,6 +537,29 @@ fn convert_calibrates_int8_rounding_on_scenes() {
         assert_eq!(listed, eight_bit, "{file}: {report}");
     }
 
+    // `inspect` lists the refined layers: as many as `convert` chose, none with `--refine
+    // none`, the trunk's 19 with `--refine trunk`.
+    let trunk = path("trunk.scdp");
+    let trunk_args = [&int8[..], &scenes[..], &["--refine", "trunk"]].concat();
+    let output = convert(&trunk_args, &trunk);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    for (file, refined) in [
+        (path("wide.scdp"), 0),
+        (trunk, 19),
+        (path("gptq.scdp"), refined_chosen),
+    ] {
+        let report = text(&tool(&["inspect", &file]).stdout);
+        assert!(
+            report.contains(&format!("{refined} layers refined")),
+            "{file}: {report}"
+        );
+        let listed = report
+            .lines()
+            .filter(|line| line.starts_with("  refined"))
+            .count();
+        assert_eq!(listed, refined, "{file}: {report}");
+    }
+
     let no_camera = convert(
         &["--quant", "int8", "--synthetic-scenes", "2"],
         &path("x.scdp"),
@@ -531,4 +573,14 @@ fn convert_calibrates_int8_rounding_on_scenes() {
     let f32_calibrated = convert(&["--calibrate", case], &path("y.scdp"));
     assert!(!f32_calibrated.status.success());
     assert!(text(&f32_calibrated.stderr).contains("only apply to --quant int8"));
+}
+
+/// The number `convert` printed in its "chosen, N of 19 trunk layers refined" line.
+fn refinements_chosen(stdout: &str) -> usize {
+    let line = stdout
+        .lines()
+        .find(|line| line.contains("trunk layers refined"))
+        .unwrap_or_else(|| panic!("no refinement line: {stdout}"));
+    let after = line.split("chosen, ").nth(1).unwrap();
+    after.split(' ').next().unwrap().parse().unwrap()
 }
