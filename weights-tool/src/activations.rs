@@ -128,7 +128,7 @@ pub const NOISE_DRAWS: usize = 8;
 
 /// The predicted actions of a weights file on every scene, for [`NOISE_DRAWS`] noise seeds
 /// each (the same seeds for every file).
-pub(crate) fn actions(file: &[u8], scenes: &[RunInputs]) -> Result<Vec<Vec<f32>>> {
+fn actions(file: &[u8], scenes: &[RunInputs]) -> Result<Vec<Vec<f32>>> {
     let mut runner = Runner::new(file)?;
     let mut all = Vec::with_capacity(scenes.len() * NOISE_DRAWS);
     for (index, scene) in scenes.iter().enumerate() {
@@ -166,6 +166,57 @@ pub(crate) fn action_error(
     }
 }
 
+/// Measures int8 files' predicted actions on the calibration scenes against the f32 model's
+/// ([`action_error`]), reporting each measured file to `progress` as (done, total).
+pub(crate) struct ActionMeasure<'s, P> {
+    config: &'s ModelConfig,
+    scenes: &'s [RunInputs],
+    reference: Vec<Vec<f32>>,
+    scale: Vec<f32>,
+    done: usize,
+    total: usize,
+    progress: P,
+}
+
+impl<'s, P: FnMut(usize, usize)> ActionMeasure<'s, P> {
+    /// Runs the f32 model (`f32_file`) on `scenes`; `stored` gives the action scale, `total`
+    /// the number of files that will be measured.
+    pub(crate) fn new(
+        config: &'s ModelConfig,
+        stored: &BTreeMap<String, Stored>,
+        f32_file: &[u8],
+        scenes: &'s [RunInputs],
+        total: usize,
+        progress: P,
+    ) -> Result<Self> {
+        ensure!(!scenes.is_empty(), "no calibration scenes to measure on");
+        let scale = match stored.get("normalizer.action.scale") {
+            Some(Stored::F32(values)) => values.clone(),
+            _ => anyhow::bail!("internal: no f32 `normalizer.action.scale`"),
+        };
+        let reference = actions(f32_file, scenes).context("the f32 model")?;
+        Ok(ActionMeasure {
+            config,
+            scenes,
+            reference,
+            scale,
+            done: 0,
+            total,
+            progress,
+        })
+    }
+
+    /// The error of the file `stored` makes.
+    pub(crate) fn error(&mut self, stored: &BTreeMap<String, Stored>) -> Result<ActionError> {
+        let file = write_weights_file(self.config, stored)?;
+        let found = actions(&file, self.scenes)?;
+        let error = action_error(&found, &self.reference, &self.scale);
+        self.done += 1;
+        (self.progress)(self.done, self.total);
+        Ok(error)
+    }
+}
+
 /// Chooses the activation codes of every candidate layer of `stored` (int8, all wide on
 /// entry) and sets them: the mean error of each layer narrow alone is measured, then layers
 /// are made narrow in the order of that error, each kept narrow only if the file with it
@@ -178,31 +229,18 @@ pub fn choose(
     f32_file: &[u8],
     scenes: &[RunInputs],
     budget: Budget,
-    mut progress: impl FnMut(usize, usize),
+    progress: impl FnMut(usize, usize),
 ) -> Result<WidthReport> {
-    ensure!(!scenes.is_empty(), "no calibration scenes to measure on");
-    let scale = match stored.get("normalizer.action.scale") {
-        Some(Stored::F32(values)) => values.clone(),
-        _ => anyhow::bail!("internal: no f32 `normalizer.action.scale`"),
-    };
     let candidates = narrow_candidates(config, stored)?;
     let total = 2 * candidates.len() + 1;
-    let mut done = 0;
-    let reference = actions(f32_file, scenes).context("the f32 model")?;
-    let mut measure = |stored: &BTreeMap<String, Stored>| -> Result<ActionError> {
-        let file = write_weights_file(config, stored)?;
-        let error = action_error(&actions(&file, scenes)?, &reference, &scale);
-        done += 1;
-        progress(done, total);
-        Ok(error)
-    };
+    let mut measure = ActionMeasure::new(config, stored, f32_file, scenes, total, progress)?;
     set_codes(stored, &candidates, ActivationCodes::Wide);
-    let wide = measure(stored)?;
+    let wide = measure.error(stored)?;
     let mut layers = Vec::with_capacity(candidates.len());
     for name in &candidates {
         let one = std::slice::from_ref(name);
         set_codes(stored, one, ActivationCodes::Narrow);
-        let alone = measure(stored)?;
+        let alone = measure.error(stored)?;
         set_codes(stored, one, ActivationCodes::Wide);
         layers.push(LayerChoice {
             name: name.clone(),
@@ -221,7 +259,7 @@ pub fn choose(
     for layer in trials {
         let one = std::slice::from_ref(&layer.name);
         set_codes(stored, one, ActivationCodes::Narrow);
-        let error = measure(stored)?;
+        let error = measure.error(stored)?;
         if budget.holds(&error, &wide) {
             layer.codes = ActivationCodes::Narrow;
             chosen = error;

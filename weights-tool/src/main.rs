@@ -298,22 +298,9 @@ fn int8_weights_file(
             refine::set_refined(&mut stored, &names, true);
             None
         }
-        RefineArg::Measured => {
-            let bar = progress_bar("measuring weight refinement");
-            let report = refine::choose(
-                config,
-                &mut stored,
-                &f32_file,
-                scenes,
-                budget,
-                |done, total| {
-                    bar.set_length(total as u64);
-                    bar.set_position(done as u64);
-                },
-            )?;
-            bar.finish_and_clear();
-            Some(report)
-        }
+        RefineArg::Measured => Some(with_progress("measuring weight refinement", |progress| {
+            refine::choose(config, &mut stored, &f32_file, scenes, budget, progress)
+        })?),
     };
     let report = match args.activations {
         ActivationsArg::Wide => None,
@@ -323,20 +310,9 @@ fn int8_weights_file(
             None
         }
         ActivationsArg::Measured => {
-            let bar = progress_bar("measuring activation widths");
-            let report = activations::choose(
-                config,
-                &mut stored,
-                &f32_file,
-                scenes,
-                budget,
-                |done, total| {
-                    bar.set_length(total as u64);
-                    bar.set_position(done as u64);
-                },
-            )?;
-            bar.finish_and_clear();
-            Some(report)
+            Some(with_progress("measuring activation widths", |progress| {
+                activations::choose(config, &mut stored, &f32_file, scenes, budget, progress)
+            })?)
         }
     };
     Ok(Int8File {
@@ -624,13 +600,22 @@ fn read_with_progress(path: &Path) -> anyhow::Result<weights_tool::StateDict> {
 }
 
 /// A spinner for steps with no count to show; drawn only when stderr is a terminal.
-/// A bar of measured files, its length set by the first update.
-fn progress_bar(what: &str) -> ProgressBar {
-    ProgressBar::new(0).with_style(
+/// Runs `measure` with a bar of the files it measured, `(done, total)` as it reports them.
+fn with_progress<T>(
+    what: &str,
+    measure: impl FnOnce(&mut dyn FnMut(usize, usize)) -> anyhow::Result<T>,
+) -> anyhow::Result<T> {
+    let bar = ProgressBar::new(0).with_style(
         ProgressStyle::with_template(&format!("{what} [{{bar:30}}] {{pos}}/{{len}}"))
             .expect("valid template")
             .progress_chars("=> "),
-    )
+    );
+    let result = measure(&mut |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    });
+    bar.finish_and_clear();
+    result
 }
 
 fn spinner(message: &str) -> ProgressBar {

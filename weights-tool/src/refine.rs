@@ -10,12 +10,12 @@
 
 use std::collections::BTreeMap;
 
-use anyhow::{Context, Result, ensure};
+use anyhow::Result;
 use scdp_engine::ModelConfig;
 
-use crate::activations::{ActionError, Budget, action_error, actions};
+use crate::activations::{ActionError, ActionMeasure, Budget};
 use crate::run::RunInputs;
-use crate::writer::{Stored, write_weights_file};
+use crate::writer::Stored;
 
 /// The layers that may be refined: the trunk's residual-block convolutions (`backbone.`,
 /// not the stem) that hold a residual plane.
@@ -88,31 +88,18 @@ pub fn choose(
     f32_file: &[u8],
     scenes: &[RunInputs],
     budget: Budget,
-    mut progress: impl FnMut(usize, usize),
+    progress: impl FnMut(usize, usize),
 ) -> Result<RefineReport> {
-    ensure!(!scenes.is_empty(), "no calibration scenes to measure on");
-    let scale = match stored.get("normalizer.action.scale") {
-        Some(Stored::F32(values)) => values.clone(),
-        _ => anyhow::bail!("internal: no f32 `normalizer.action.scale`"),
-    };
     let names = candidates(stored);
     let total = 2 * names.len() + 2;
-    let mut done = 0;
-    let reference = actions(f32_file, scenes).context("the f32 model")?;
-    let mut measure = |stored: &BTreeMap<String, Stored>| -> Result<ActionError> {
-        let file = write_weights_file(config, stored)?;
-        let error = action_error(&actions(&file, scenes)?, &reference, &scale);
-        done += 1;
-        progress(done, total);
-        Ok(error)
-    };
+    let mut measure = ActionMeasure::new(config, stored, f32_file, scenes, total, progress)?;
     set_refined(stored, &names, false);
-    let none = measure(stored)?;
+    let none = measure.error(stored)?;
     let mut layers = Vec::with_capacity(names.len());
     for name in &names {
         let one = std::slice::from_ref(name);
         set_refined(stored, one, true);
-        let alone = measure(stored)?;
+        let alone = measure.error(stored)?;
         set_refined(stored, one, false);
         layers.push(LayerRefinement {
             name: name.clone(),
@@ -122,12 +109,12 @@ pub fn choose(
     }
     layers.sort_by(|a, b| b.alone.mean.total_cmp(&a.alone.mean));
     set_refined(stored, &names, true);
-    let all = measure(stored)?;
+    let all = measure.error(stored)?;
     let mut chosen = all;
     for layer in &mut layers {
         let one = std::slice::from_ref(&layer.name);
         set_refined(stored, one, false);
-        let error = measure(stored)?;
+        let error = measure.error(stored)?;
         if budget.holds(&error, &all) {
             layer.refined = false;
             chosen = error;
