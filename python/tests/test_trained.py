@@ -23,6 +23,10 @@ TRAINED = sorted((ROOT / "tests" / "fixtures" / "trained").glob("metaworld-*"))
 # Closed-loop smoke test: episodes of the int8 policy, on seeds far from the evaluation's.
 SMOKE_EPISODES = 10
 SMOKE_FIRST_SEED = 5000
+# The agreement budget of an int8 file with PyTorch, normalized action units: the project's
+# int8 fidelity floor.
+INT8_AGREEMENT_MAX = 0.02
+INT8_AGREEMENT_MEAN = 0.005
 
 
 def task_of(folder: Path) -> str:
@@ -53,14 +57,24 @@ def test_a_trained_policy_ships():
         assert len(list((folder / "observations").glob("*.safetensors"))) >= 4
 
 
+@pytest.mark.parametrize("folder", TRAINED, ids=lambda f: f.name)
+def test_shipped_int8_agreement_is_within_the_budget(folder):
+    """The evaluation recorded beside each shipped int8 file (`eval --runtime torch
+    --agreement`, every inference of 100 torch rollouts) is within the budget: a file
+    converted or evaluated again must still meet it to ship."""
+    agreement = evaluations(folder)["torch"]["agreement"]["engine-int8"]
+    assert agreement["inferences"] >= 500, agreement
+    assert agreement["max"] <= INT8_AGREEMENT_MAX, agreement
+    assert agreement["mean"] <= INT8_AGREEMENT_MEAN, agreement
+
+
 @pytest.mark.parametrize("quant", ["f32", "int8"])
 @pytest.mark.parametrize("folder", TRAINED, ids=lambda f: f.name)
 def test_engine_reproduces_torch_on_recorded_observations(folder, quant, f32_weights):
-    """Bounds: f32 within the issue's 2e-4 (measured on every inference of the 100 torch
-    rollouts, see eval.json); int8 within twice the largest error measured there, which was
-    over ~1000 inferences, so these few recorded ones stay inside it with margin."""
-    torch_figures = evaluations(folder)["torch"]["agreement"]
-    bound = 2e-4 if quant == "f32" else 2 * torch_figures["engine-int8"]["max"]
+    """Bounds: f32 within the issue's 2e-4; int8 within the agreement budget the project
+    states for it, max 0.02 (docs/METAWORLD.md), which the shipped files meet on every
+    inference of the 100 torch rollouts (eval.json), so on these few recorded ones too."""
+    bound = 2e-4 if quant == "f32" else INT8_AGREEMENT_MAX
     path = f32_weights[folder] if quant == "f32" else folder / "int8.scdp"
     model = scdp.Model(str(path))
     for backend in scdp.backends():
