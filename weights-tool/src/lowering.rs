@@ -858,8 +858,8 @@ mod tests {
             };
             let (quantized, scales) = quantize_per_channel(&values, channels, axis);
             let residual = residual_plane(&values, &quantized, &scales, axis);
-            for channel in 0..channels {
-                let ratio = residual.scales[channel] / scales[channel];
+            for (residual_scale, scale) in residual.scales.iter().zip(&scales) {
+                let ratio = residual_scale / scale;
                 assert!(ratio > 0.0 && ratio <= (1.0 + 1e-5) / 254.0, "{ratio}");
             }
             for (index, &value) in values.iter().enumerate() {
