@@ -12,41 +12,35 @@ fn mebibytes(bytes: usize) -> String {
     format!("{:.2} MiB", bytes as f64 / (1024.0 * 1024.0))
 }
 
-/// How many weights of a file read 15-bit and 8-bit activation codes (dtypes `i8` and
-/// `i8a8`).
-pub fn activation_code_counts(bytes: &[u8]) -> Result<(usize, usize)> {
+/// How an int8 file stores its weights: how many layers read 15-bit and 8-bit activation
+/// codes (dtypes `i8`/`i16` and `i8a8`/`i16a8`), and how many carry a second weight plane
+/// (`i16`, `i16a8`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct WeightCounts {
+    pub wide: usize,
+    pub narrow: usize,
+    pub refined: usize,
+}
+
+/// The [`WeightCounts`] of a weights file.
+pub fn weight_counts(bytes: &[u8]) -> Result<WeightCounts> {
     let aligned = crate::writer::aligned_copy(bytes);
     let model =
         Model::from_bytes(aligned.as_slice()).map_err(|error| anyhow::anyhow!("{error}"))?;
     let file = model.file();
-    let (mut wide, mut narrow) = (0, 0);
+    let mut counts = WeightCounts::default();
     for index in 0..file.tensor_count() {
         let entry = file
             .entry(index)
             .map_err(|error| anyhow::anyhow!("{error}"))?;
         match entry.dtype {
-            DType::I8 | DType::I8Refined => wide += 1,
-            DType::I8Narrow | DType::I8NarrowRefined => narrow += 1,
+            DType::I8 | DType::I8Refined => counts.wide += 1,
+            DType::I8Narrow | DType::I8NarrowRefined => counts.narrow += 1,
             DType::F32 => {}
         }
+        counts.refined += usize::from(entry.dtype.is_refined());
     }
-    Ok((wide, narrow))
-}
-
-/// How many weights of a file carry a second plane (dtypes `i16` and `i16a8`).
-pub fn refined_count(bytes: &[u8]) -> Result<usize> {
-    let aligned = crate::writer::aligned_copy(bytes);
-    let model =
-        Model::from_bytes(aligned.as_slice()).map_err(|error| anyhow::anyhow!("{error}"))?;
-    let file = model.file();
-    let mut refined = 0;
-    for index in 0..file.tensor_count() {
-        let entry = file
-            .entry(index)
-            .map_err(|error| anyhow::anyhow!("{error}"))?;
-        refined += usize::from(entry.dtype.is_refined());
-    }
-    Ok(refined)
+    Ok(counts)
 }
 
 /// A one-screen report: config, storage, arena plan, then the tensor table.

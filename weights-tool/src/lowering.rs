@@ -633,6 +633,14 @@ pub fn int8_kept_f32(config: &ModelConfig) -> Vec<(&'static str, &'static str)> 
     kept
 }
 
+/// Whether the tool offers a tensor a second weight plane: the trunk's residual-block
+/// convolutions (`backbone.layer*`, which the engine also allows narrow codes). The engine
+/// would take one on the U-Net's too, but with their weights in f32 door-open's largest
+/// action differences did not fall (docs/METAWORLD.md).
+fn may_refine(name: &str, narrow: NarrowCodes) -> bool {
+    narrow == NarrowCodes::Allowed && name.starts_with("backbone.layer")
+}
+
 /// What int8 rounding left of `values` (`values - quantized * scale`), quantized again per
 /// channel to nearest: with it the weights are about 15 bits.
 fn residual_plane(
@@ -780,9 +788,10 @@ pub fn store_keeping(
                     quantized = crate::gptq::quantize(&values, &scales, axis, moment, GPTQ_DAMPING)
                         .with_context(|| format!("GPTQ rounding of `{name}`"))?;
                 }
-                // The residual blocks' convolutions may be refined by a second plane (whether
-                // they are is measured later, `crate::refine`): what the rounding left.
-                let residual = (spec.narrow == NarrowCodes::Allowed)
+                // The trunk's residual-block convolutions may be refined by a second plane
+                // (whether they are is measured later, `crate::refine`): what the rounding
+                // left.
+                let residual = may_refine(&name, spec.narrow)
                     .then(|| residual_plane(&values, &quantized, &scales, axis));
                 // Convolutions take int8 activations: their kernels go to the layout of the
                 // integer dot products (docs/FORMAT.md); FiLM matrices stay as they are.

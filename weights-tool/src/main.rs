@@ -10,6 +10,7 @@ use anyhow::Context as _;
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use weights_tool::inspect::WeightCounts;
 use weights_tool::keys::{check_keys, expected_keys};
 use weights_tool::synth::{hex, synth_state_dict, weights_sha256};
 use weights_tool::{
@@ -332,11 +333,11 @@ struct Int8File {
 /// `convert`'s lines about an int8 file's refined layers.
 fn print_refinement(
     args: &ConvertArgs,
-    bytes: &[u8],
+    counts: &WeightCounts,
     report: Option<&weights_tool::refine::RefineReport>,
 ) {
     let Some(report) = report else {
-        let refined = weights_tool::inspect::refined_count(bytes).unwrap_or_default();
+        let refined = counts.refined;
         let why = match args.refine {
             RefineArg::None => "none (--refine none)",
             RefineArg::Trunk => "every trunk residual-block layer (--refine trunk)",
@@ -375,12 +376,11 @@ fn print_refinement(
 /// `convert`'s lines about an int8 file's activation codes.
 fn print_activations(
     args: &ConvertArgs,
-    bytes: &[u8],
+    counts: &WeightCounts,
     report: Option<&weights_tool::activations::WidthReport>,
 ) {
     let Some(report) = report else {
-        let (wide, narrow) =
-            weights_tool::inspect::activation_code_counts(bytes).unwrap_or_default();
+        let WeightCounts { wide, narrow, .. } = *counts;
         let why = match args.activations {
             ActivationsArg::Narrow => "8-bit in every residual-block layer (--activations narrow)",
             ActivationsArg::Wide => "15-bit everywhere (--activations wide)",
@@ -492,8 +492,9 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
                 weights_tool::lowering::GPTQ_DAMPING
             ),
         }
-        print_refinement(args, &bytes, refinement.as_ref());
-        print_activations(args, &bytes, report.as_ref());
+        let counts = weights_tool::inspect::weight_counts(&bytes).unwrap_or_default();
+        print_refinement(args, &counts, refinement.as_ref());
+        print_activations(args, &counts, report.as_ref());
         for (name, why) in weights_tool::lowering::int8_kept_f32(&config) {
             println!("  kept f32       {name}: {why}");
         }

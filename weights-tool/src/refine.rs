@@ -17,21 +17,21 @@ use crate::activations::{ActionError, ActionMeasure, Budget};
 use crate::run::RunInputs;
 use crate::writer::Stored;
 
-/// The layers that may be refined: the trunk's residual-block convolutions (`backbone.`,
-/// not the stem) that hold a residual plane.
+/// The layers that may be refined: those the lowering gave a residual plane (the trunk's
+/// int8 residual-block convolutions).
 pub fn candidates(stored: &BTreeMap<String, Stored>) -> Vec<String> {
+    let has_residual = |tensor: &Stored| {
+        matches!(
+            tensor,
+            Stored::Int8 {
+                residual: Some(_),
+                ..
+            }
+        )
+    };
     stored
         .iter()
-        .filter(|(name, tensor)| {
-            name.starts_with("backbone.layer")
-                && matches!(
-                    tensor,
-                    Stored::Int8 {
-                        residual: Some(_),
-                        ..
-                    }
-                )
-        })
+        .filter(|(_, tensor)| has_residual(tensor))
         .map(|(name, _)| name.clone())
         .collect()
 }

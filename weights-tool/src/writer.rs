@@ -31,8 +31,8 @@ pub struct TensorSpec {
 pub enum Stored {
     F32(Vec<f32>),
     /// Symmetric int8 with one scale per output channel, and the codes the layer
-    /// quantizes its input to; for the residual blocks' convolutions also the plane that
-    /// refines them, written only when `refined` (`DType::I8Refined`).
+    /// quantizes its input to; for the trunk's residual-block convolutions also the plane
+    /// that refines them, written only when `refined` (`DType::I8Refined`).
     Int8 {
         values: Vec<i8>,
         scales: Vec<f32>,

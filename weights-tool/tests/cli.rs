@@ -524,17 +524,12 @@ fn convert_calibrates_int8_rounding_on_scenes() {
     let output = convert(&narrow_args, &narrow);
     assert!(output.status.success(), "{}", text(&output.stderr));
     for (file, eight_bit) in [(path("wide.scdp"), 0), (narrow, 43)] {
-        let inspect = tool(&["inspect", &file]);
-        let report = text(&inspect.stdout);
-        assert!(
-            report.contains(&format!("{eight_bit} on 8-bit codes")),
-            "{file}: {report}"
+        assert_inspect_lists(
+            &file,
+            &format!("{eight_bit} on 8-bit codes"),
+            "  8-bit",
+            eight_bit,
         );
-        let listed = report
-            .lines()
-            .filter(|line| line.starts_with("  8-bit"))
-            .count();
-        assert_eq!(listed, eight_bit, "{file}: {report}");
     }
 
     // `inspect` lists the refined layers: as many as `convert` chose, none with `--refine
@@ -548,16 +543,12 @@ fn convert_calibrates_int8_rounding_on_scenes() {
         (trunk, 19),
         (path("gptq.scdp"), refined_chosen),
     ] {
-        let report = text(&tool(&["inspect", &file]).stdout);
-        assert!(
-            report.contains(&format!("{refined} layers refined")),
-            "{file}: {report}"
+        assert_inspect_lists(
+            &file,
+            &format!("{refined} layers refined"),
+            "  refined",
+            refined,
         );
-        let listed = report
-            .lines()
-            .filter(|line| line.starts_with("  refined"))
-            .count();
-        assert_eq!(listed, refined, "{file}: {report}");
     }
 
     let no_camera = convert(
@@ -583,4 +574,15 @@ fn refinements_chosen(stdout: &str) -> usize {
         .unwrap_or_else(|| panic!("no refinement line: {stdout}"));
     let after = line.split("chosen, ").nth(1).unwrap();
     after.split(' ').next().unwrap().parse().unwrap()
+}
+
+/// `inspect FILE` prints `summary` and lists `count` layers on lines starting with `prefix`.
+fn assert_inspect_lists(file: &str, summary: &str, prefix: &str, count: usize) {
+    let report = text(&tool(&["inspect", file]).stdout);
+    assert!(report.contains(summary), "{file}: {report}");
+    let listed = report
+        .lines()
+        .filter(|line| line.starts_with(prefix))
+        .count();
+    assert_eq!(listed, count, "{file}: {report}");
 }
