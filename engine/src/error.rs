@@ -114,6 +114,15 @@ pub enum Error {
     NonFiniteState,
     /// NaN or infinity in the given noise.
     NonFiniteNoise,
+    /// A committed prefix that is not whole rows of `action_dim` values, or has more rows
+    /// than the horizon holds after the observation steps (`horizon - n_obs_steps + 1`).
+    PrefixSize {
+        max_rows: usize,
+        action_dim: usize,
+        found: usize,
+    },
+    /// NaN or infinity in a committed prefix.
+    NonFinitePrefix,
     /// Intrinsics with a non-positive or non-finite focal length, or non-finite centre.
     BadIntrinsics,
     /// Extrinsics that are not a finite rigid transform.
@@ -173,6 +182,15 @@ impl fmt::Display for Error {
             }
             Self::NonFiniteState => f.write_str("state contains NaN or infinity"),
             Self::NonFiniteNoise => f.write_str("noise contains NaN or infinity"),
+            Self::PrefixSize {
+                max_rows,
+                action_dim,
+                found,
+            } => write!(
+                f,
+                "prefix has {found} values; expected whole rows of {action_dim}, at most {max_rows} rows"
+            ),
+            Self::NonFinitePrefix => f.write_str("prefix contains NaN or infinity"),
             Self::BadIntrinsics => f.write_str("camera intrinsics are not a valid pinhole matrix"),
             Self::BadExtrinsics => {
                 f.write_str("camera extrinsics are not a finite rigid transform")

@@ -54,4 +54,5 @@ pub use config::{BackboneNorm, ModelConfig};
 pub use error::{ConfigError, Error};
 pub use kernels::Backend;
 pub use plan::{Aligned, Arena, ArenaPlan};
-pub use policy::{Actions, Model, NoObserver, Noise, Observer, Policy};
+pub use policy::{Actions, Model, NoObserver, Noise, Observer, Policy, Prefix};
+pub use scheduler::PrefixMode;

@@ -45,6 +45,9 @@ pub struct ArenaPlan {
     pub sample: usize,
     /// `[horizon, action_dim]`: the U-Net's noise prediction.
     pub eps: usize,
+    /// `[horizon, action_dim]`: the initial sample, which a prefix held at each step's noise
+    /// level is noised with.
+    pub initial: usize,
     /// The global condition `g`, and `Mish(g)` which the FiLM layers read.
     pub global_cond: usize,
     pub activated_cond: usize,
@@ -88,6 +91,7 @@ impl ArenaPlan {
             anchors: saturate(plan.anchors),
             sample: saturate(plan.sample),
             eps: saturate(plan.eps),
+            initial: saturate(plan.initial),
             global_cond: saturate(plan.global_cond),
             activated_cond: saturate(plan.activated_cond),
             film: saturate(plan.film),
@@ -208,6 +212,7 @@ struct Lengths {
     anchors: u64,
     sample: u64,
     eps: u64,
+    initial: u64,
     global_cond: u64,
     activated_cond: u64,
     film: u64,
@@ -233,6 +238,7 @@ impl Lengths {
         let anchors = aligned(steps * config.anchor_count() as u64 * 2);
         let sample = aligned(sequence);
         let eps = aligned(sequence);
+        let initial = aligned(sequence);
         let global_cond = aligned(config.global_cond_dim() as u64);
         let activated_cond = global_cond;
         let mut widest = 0;
@@ -301,6 +307,7 @@ impl Lengths {
             + anchors
             + sample
             + eps
+            + initial
             + global_cond
             + activated_cond
             + film
@@ -315,6 +322,7 @@ impl Lengths {
             anchors,
             sample,
             eps,
+            initial,
             global_cond,
             activated_cond,
             film,

@@ -12,7 +12,7 @@ use crate::kernels::{self, Backend, Kernels, QuantizeScratch};
 use crate::plan::{ArenaPlan, Carver};
 use crate::pyramid::{self, FrameStore, TrunkScratch};
 use crate::rng::NoiseRng;
-use crate::scheduler;
+use crate::scheduler::{self, PrefixLevel, PrefixMode};
 use crate::weights::{FileSource, ModelWeights, SCHEDULE_COLUMNS};
 
 /// A validated weights file bound to the model it describes. Borrows the bytes: nothing is
@@ -65,6 +65,64 @@ pub enum Noise<'n> {
     Given(&'n [f32]),
 }
 
+/// Actions the robot will execute before the new chunk takes over, which the chunk must
+/// continue: `[k, action_dim]` row-major in action units, for horizon rows `To - 1 ..
+/// To - 1 + k` (the rows [`Actions::action`] starts at). The denoising loop holds those
+/// rows as [`PrefixMode`] says, so the rest of the chunk, and the anchors it is conditioned
+/// on, are planned from them; `action_pred` returns them (round-tripped through the action
+/// normalization).
+#[derive(Clone, Copy, Debug)]
+pub struct Prefix<'p> {
+    actions: &'p [f32],
+    mode: PrefixMode,
+}
+
+impl<'p> Prefix<'p> {
+    /// No committed actions: the plain inference, bit for bit.
+    pub const NONE: Prefix<'static> = Prefix {
+        actions: &[],
+        mode: PrefixMode::Replace,
+    };
+
+    #[must_use]
+    pub const fn new(actions: &'p [f32], mode: PrefixMode) -> Self {
+        Prefix { actions, mode }
+    }
+
+    #[must_use]
+    pub const fn actions(&self) -> &'p [f32] {
+        self.actions
+    }
+
+    #[must_use]
+    pub const fn mode(&self) -> PrefixMode {
+        self.mode
+    }
+
+    /// The most rows a prefix can have for `config`: the horizon from row `To - 1` on.
+    #[must_use]
+    pub const fn max_rows(config: &ModelConfig) -> usize {
+        (config.horizon - config.n_obs_steps + 1) as usize
+    }
+
+    fn check(&self, config: &ModelConfig) -> Result<(), Error> {
+        let action_dim = config.action_dim as usize;
+        let max_rows = Self::max_rows(config);
+        let found = self.actions.len();
+        if !found.is_multiple_of(action_dim) || found > max_rows * action_dim {
+            return Err(Error::PrefixSize {
+                max_rows,
+                action_dim,
+                found,
+            });
+        }
+        if self.actions.iter().any(|value| !value.is_finite()) {
+            return Err(Error::NonFinitePrefix);
+        }
+        Ok(())
+    }
+}
+
 /// Sees the intermediate values of an inference; for golden tests and debugging. Every
 /// method has an empty default, so an observer implements only what it needs.
 pub trait Observer {
@@ -92,6 +150,7 @@ struct Buffers<'a> {
     anchors: &'a mut [f32],
     sample: &'a mut [f32],
     eps: &'a mut [f32],
+    initial: &'a mut [f32],
     global_cond: &'a mut [f32],
     activated_cond: &'a mut [f32],
     film: &'a mut [f32],
@@ -198,6 +257,7 @@ impl<'w, 'a> Policy<'w, 'a> {
             anchors: carver.take(plan.anchors),
             sample: carver.take(plan.sample),
             eps: carver.take(plan.eps),
+            initial: carver.take(plan.initial),
             global_cond: carver.take(plan.global_cond),
             activated_cond: carver.take(plan.activated_cond),
             film: carver.take(plan.film),
@@ -262,13 +322,24 @@ impl<'w, 'a> Policy<'w, 'a> {
 
     /// Runs the denoising loop and returns the action chunk.
     pub fn infer(&mut self, noise: Noise<'_>) -> Result<Actions<'_>, Error> {
-        self.infer_observed(noise, &mut NoObserver)
+        self.infer_observed(noise, Prefix::NONE, &mut NoObserver)
     }
 
-    /// [`infer`](Self::infer), showing each step's intermediates to `observer`.
+    /// [`infer`](Self::infer) for a chunk that continues `prefix`, the actions already
+    /// committed to run before it takes over.
+    pub fn infer_with(
+        &mut self,
+        noise: Noise<'_>,
+        prefix: Prefix<'_>,
+    ) -> Result<Actions<'_>, Error> {
+        self.infer_observed(noise, prefix, &mut NoObserver)
+    }
+
+    /// [`infer_with`](Self::infer_with), showing each step's intermediates to `observer`.
     pub fn infer_observed(
         &mut self,
         noise: Noise<'_>,
+        prefix: Prefix<'_>,
         observer: &mut impl Observer,
     ) -> Result<Actions<'_>, Error> {
         let config = *self.config();
@@ -276,6 +347,7 @@ impl<'w, 'a> Policy<'w, 'a> {
         if self.observed == 0 {
             return Err(Error::NoObservation);
         }
+        prefix.check(&config)?;
         let sequence = config.horizon as usize * config.action_dim as usize;
         let frames = config.n_obs_steps as usize;
         let state_dim = config.state_dim as usize;
@@ -307,6 +379,13 @@ impl<'w, 'a> Policy<'w, 'a> {
                 sample.copy_from_slice(values);
             }
         }
+        // The prefix's rows of the sample, and of the initial sample that noises them.
+        let action_dim = config.action_dim as usize;
+        let prefix_rows =
+            (frames - 1) * action_dim..(frames - 1) * action_dim + prefix.actions.len();
+        let initial = &mut buffers.initial[..prefix.actions.len()];
+        initial.copy_from_slice(&sample[prefix_rows.clone()]);
+        let normalization = (normalizer.action_scale, normalizer.action_offset);
 
         // The normalized states do not change during the loop: write them into g once.
         let cond_stride = context_dim + state_dim;
@@ -321,6 +400,15 @@ impl<'w, 'a> Policy<'w, 'a> {
         let current_state = &buffers.states[newest * state_dim..][..state_dim];
         let eps = &mut buffers.eps[..sequence];
         for step in 0..config.num_inference_steps as usize {
+            let coefficients = &weights.schedule[step * SCHEDULE_COLUMNS..][..SCHEDULE_COLUMNS];
+            scheduler::hold_prefix(
+                prefix.mode,
+                PrefixLevel::Step(coefficients),
+                prefix.actions,
+                normalization,
+                initial,
+                &mut sample[prefix_rows.clone()],
+            );
             let anchors_uv = &mut buffers.anchors[step * anchor_values..][..anchor_values];
             anchors::project_anchors(
                 &config,
@@ -382,7 +470,6 @@ impl<'w, 'a> Policy<'w, 'a> {
             if eps.iter().any(|value| !value.is_finite()) {
                 return Err(Error::NonFiniteResult { step });
             }
-            let coefficients = &weights.schedule[step * SCHEDULE_COLUMNS..][..SCHEDULE_COLUMNS];
             scheduler::ddim_step(coefficients, config.clip_sample, sample, eps);
             if sample.iter().any(|value| !value.is_finite()) {
                 return Err(Error::NonFiniteResult { step });
@@ -390,7 +477,14 @@ impl<'w, 'a> Policy<'w, 'a> {
             observer.step(step, anchors_uv, global_cond, eps, sample);
         }
 
-        let action_dim = config.action_dim as usize;
+        scheduler::hold_prefix(
+            prefix.mode,
+            PrefixLevel::Final,
+            prefix.actions,
+            normalization,
+            initial,
+            &mut sample[prefix_rows],
+        );
         for row in sample.chunks_exact_mut(action_dim) {
             for ((value, &scale), &offset) in row
                 .iter_mut()

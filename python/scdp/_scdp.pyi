@@ -9,6 +9,7 @@ import numpy.typing as npt
 from typing_extensions import Buffer
 
 _BackendName: TypeAlias = Literal["auto", "scalar", "avx2", "avx512", "amx"]
+_PrefixMode: TypeAlias = Literal["replace", "noised"]
 
 @type_check_only
 class ModelConfig(TypedDict):
@@ -123,6 +124,8 @@ class Policy:
         seed: int | None = None,
         noise: npt.ArrayLike | None = None,
         full: Literal[False] = False,
+        prefix: npt.ArrayLike | None = None,
+        prefix_mode: _PrefixMode = "replace",
     ) -> npt.NDArray[np.float32]: ...
     @overload
     def infer(
@@ -131,6 +134,8 @@ class Policy:
         noise: npt.ArrayLike | None = None,
         *,
         full: Literal[True],
+        prefix: npt.ArrayLike | None = None,
+        prefix_mode: _PrefixMode = "replace",
     ) -> FullInference: ...
     @overload
     def infer(
@@ -138,6 +143,8 @@ class Policy:
         seed: int | None = None,
         noise: npt.ArrayLike | None = None,
         full: bool = False,
+        prefix: npt.ArrayLike | None = None,
+        prefix_mode: _PrefixMode = "replace",
     ) -> npt.NDArray[np.float32] | FullInference:
         """Runs the denoising loop (`num_inference_steps` DDIM steps) on the observations
         pushed.
@@ -155,6 +162,12 @@ class Policy:
         step, `[num_inference_steps, reconstruction_horizon + 1, 2]`, NaN where a point is
         behind the camera). Raises `EngineError` before a camera is set or an observation
         pushed.
+
+        `prefix`, float32/float64 `[k, action_dim]` in action units: the actions the robot
+        will execute before this chunk takes over, for rows `n_obs_steps - 1 ..` of the
+        chunk; the denoising holds them ("replace": Diffusion Policy's inpainting;
+        "noised": at each step's noise level) so the rest of the chunk continues them.
+        More than `horizon - n_obs_steps + 1` rows, or NaN/inf, raise `EngineError`.
         """
     def reset(self) -> None:
         """Forgets the observation history and restarts the seed counter (see `infer`);

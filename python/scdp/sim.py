@@ -68,6 +68,10 @@ class Scene:
         # What Meta-World's goal-observable variants set up, with the per-episode random
         # configuration drawn from the episode's seed instead of a global generator.
         env._partially_observable = False
+        # The observation space is cached from the partially observable default, and every
+        # step clips the observation to it, which zeroes the goal that the goal-seeking
+        # experts (push, pick-place, ...) steer by: drop it, as those variants do.
+        env.__dict__.pop("sawyer_observation_space", None)
         env._set_task_called = True
         env._freeze_rand_vec = False
         env.seeded_rand_vec = True

@@ -312,17 +312,32 @@ class SCDPPolicy(nn.Module):
     # ---- inference (DDIM, eta 0, "leading" timesteps, set_alpha_to_one)
 
     @torch.no_grad()
-    def predict(self, images, state, camera_k, camera_t, noise, record_anchors=False):
+    def predict(self, images, state, camera_k, camera_t, noise, record_anchors=False, prefix=None,
+                prefix_mode="replace"):
         """One chunk per batch entry; noise [B, horizon, A] is the initial sample.
         Returns action_pred [B, horizon, A] (raw units) and, when asked, the anchors of
-        each step [steps, B, s+1, 2] (NaN where invalid)."""
+        each step [steps, B, s+1, 2] (NaN where invalid). `prefix` [B, k, A] (raw units):
+        actions committed for rows To-1.., held as `prefix_mode` says ("replace": Diffusion
+        Policy's inpainting; "noised": at each step's noise level; docs/SPEC.md 5.1)."""
         cfg = self.cfg
         features = self.features(images)
         steps = cfg["num_inference_steps"]
         ratio = cfg["num_train_timesteps"] // steps
         sample = noise.float()
+        first = cfg["n_obs_steps"] - 1
+        rows = slice(first, first + (0 if prefix is None else prefix.shape[1]))
+        if prefix is not None:
+            held = self.normalizer.normalize("action", prefix.float())
+            initial = sample[:, rows].clone()
         anchors = []
         for t in range(ratio * (steps - 1), -1, -ratio):
+            if prefix is not None:
+                sample = sample.clone()
+                if prefix_mode == "noised":
+                    a_t = self.alphas_cumprod[t]
+                    sample[:, rows] = a_t.sqrt() * held + (1 - a_t).sqrt() * initial
+                else:
+                    sample[:, rows] = held
             cond, uv, valid = self.global_condition(features, sample, state, camera_k, camera_t)
             if record_anchors:
                 anchors.append(torch.where(valid[..., None], uv, torch.full_like(uv, float("nan"))))
@@ -334,6 +349,9 @@ class SCDPPolicy(nn.Module):
             if cfg.get("clip_sample", True):
                 x0 = x0.clamp(-1.0, 1.0)
             sample = a_prev.sqrt() * x0 + (1 - a_prev).sqrt() * eps
+        if prefix is not None:
+            sample = sample.clone()
+            sample[:, rows] = held
         action_pred = self.normalizer.unnormalize("action", sample)
         return (action_pred, torch.stack(anchors)) if record_anchors else action_pred
 

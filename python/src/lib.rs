@@ -21,7 +21,8 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use scdp_engine::kernels;
 use scdp_engine::{
-    ArenaPlan, BackboneNorm, Backend, Camera, Model, ModelConfig, Noise, Policy, format::Quant,
+    ArenaPlan, BackboneNorm, Backend, Camera, Model, ModelConfig, Noise, Policy, Prefix,
+    PrefixMode, format::Quant,
 };
 
 create_exception!(
@@ -469,16 +470,47 @@ impl PyPolicy {
     /// `[horizon, action_dim]`) and "anchors_uv" (the anchor pixels of every step,
     /// `[num_inference_steps, reconstruction_horizon + 1, 2]`, NaN where a point is behind
     /// the camera). Raises `EngineError` before a camera is set or an observation pushed.
-    #[pyo3(signature = (seed = None, noise = None, full = false))]
+    ///
+    /// `prefix`, float32/float64 `[k, action_dim]` in action units: the actions the robot
+    /// will execute before this chunk takes over, for rows `n_obs_steps - 1 ..` of the
+    /// chunk; the denoising holds them (`prefix_mode` "replace", Diffusion Policy's
+    /// inpainting, or "noised", at each step's noise level) so the rest continues them.
+    /// More rows than `horizon - n_obs_steps + 1`, or NaN/inf, raise `EngineError`.
+    #[pyo3(signature = (seed = None, noise = None, full = false, prefix = None, prefix_mode = "replace"))]
+    #[allow(clippy::too_many_arguments)]
     fn infer<'py>(
         &mut self,
         py: Python<'py>,
         seed: Option<&Bound<'py, PyAny>>,
         noise: Option<&Bound<'py, PyAny>>,
         full: bool,
+        prefix: Option<&Bound<'py, PyAny>>,
+        prefix_mode: &str,
     ) -> PyResult<Bound<'py, PyAny>> {
         let config = *self.policy.config();
         let (horizon, action_dim) = (config.horizon as usize, config.action_dim as usize);
+        let mode = match prefix_mode {
+            "replace" => PrefixMode::Replace,
+            "noised" => PrefixMode::Noised,
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "prefix_mode must be \"replace\" or \"noised\"; got {other:?}"
+                )));
+            }
+        };
+        let prefix = match prefix {
+            None => Vec::new(),
+            Some(prefix) => {
+                let (shape, values) = float_values(prefix, "prefix")?;
+                if shape.len() != 2 || shape[1] != action_dim {
+                    return Err(PyValueError::new_err(format!(
+                        "prefix must be 2-D, [k, action_dim] = (k, {action_dim}); got shape {}",
+                        shape_text(&shape)
+                    )));
+                }
+                values
+            }
+        };
         let counted = seed.is_none() && noise.is_none();
         let mut given = Vec::new();
         let seed = match (seed, noise) {
@@ -513,7 +545,7 @@ impl PyPolicy {
                 None => Noise::Given(&given),
             };
             let start = Instant::now();
-            let actions = policy.infer(noise)?;
+            let actions = policy.infer_with(noise, Prefix::new(&prefix, mode))?;
             let milliseconds = milliseconds(start);
             Ok(Inference {
                 action: actions.action().to_vec(),

@@ -61,6 +61,13 @@ CASE_DESCRIPTIONS = {
              "Across the denoising steps some anchors project outside the image, at least one is behind "
              "the camera (X.z <= z_min, invalid: zero contribution, NaN in anchors_uv) and others are valid."),
 }
+PREFIX_CASES = ("prefix-replace", "prefix-noised")
+PREFIX_ROWS = 3  # committed actions: the latency of 3 control steps
+PREFIX_SHIFT = 2  # taken from the plain chunk's rows To-1+2.., as if planned two steps earlier
+for _mode in ("replace", "noised"):
+    CASE_DESCRIPTIONS[f"prefix-{_mode}"] = (
+        f"As basic, with {PREFIX_ROWS} committed actions for rows To-1.. (docs/SPEC.md section 5.1, mode "
+        f"{_mode}): the float64 plain chunk's rows To-1+{PREFIX_SHIFT}.. of the same inputs, rounded to float32.")
 
 
 # ------------------------------------------------------------------------------------ io
@@ -132,9 +139,9 @@ def numpy_out(out: dict) -> dict[str, np.ndarray]:
 
 def candidate(cfg: dict, name: str, case: str, attempt: int) -> tuple[RunInputs, dict]:
     """The attempt-th deterministic scene candidate of a case."""
-    image_seed = 100 + CONFIGS.index(name) * 10 + (0 if case == "basic" else 1)
+    image_seed = 100 + CONFIGS.index(name) * 10 + {"basic": 0, "edge": 1}.get(case, 2)
     seed = image_seed * 100 + attempt
-    if case == "basic":
+    if case != "edge":
         inp, info = make_inputs(cfg, name, seed, image_seed=image_seed)
         info["scene"] = f"image_seed={image_seed} draw_seed={seed}"
         return inp, info
@@ -216,8 +223,13 @@ def generate_case(cfg, cfg_text, name, case, p32, p64, wsha, outdir, log) -> dic
         if key not in feats_cache:
             feats_cache.clear()
             feats_cache[key] = p64.features(torch.as_tensor(inp.images))
+        if case in PREFIX_CASES:
+            plain = numpy_out(p64.predict(inp, feats=feats_cache[key]))["action_pred"]
+            first = cfg["n_obs_steps"] - 1 + PREFIX_SHIFT
+            inp.prefix = plain[first:first + PREFIX_ROWS].astype(np.float32)
+            inp.prefix_mode = case.removeprefix("prefix-")
         o64 = numpy_out(p64.predict(inp, feats=feats_cache[key]))
-        ok, why, stats = case_properties(cfg, case, o64)
+        ok, why, stats = case_properties(cfg, "edge" if case == "edge" else "basic", o64)
         if ok:
             stats["attempt"] = attempt
             if best is None or stats["x0_margin"] > best[3]["x0_margin"]:
@@ -257,6 +269,10 @@ def generate_case(cfg, cfg_text, name, case, p32, p64, wsha, outdir, log) -> dic
     assert err["x0_raw"] < X0_MARGIN / 3, f"x0 f32 error {err['x0_raw']} too close to the margin"
     tensors = {"images": inp.images, "state": inp.state, "noise": inp.noise,
                "camera_k": inp.camera_k, "camera_t": inp.camera_t}
+    extra_meta = {}
+    if inp.prefix is not None:
+        tensors["prefix"] = inp.prefix
+        extra_meta["prefix_mode"] = inp.prefix_mode
     for n in OUT_NAMES:
         tensors[f"ref64.{n}"] = o64[n].astype(np.float64)
         tensors[f"ref32.{n}"] = o32[n].astype(np.float32)
@@ -269,6 +285,7 @@ def generate_case(cfg, cfg_text, name, case, p32, p64, wsha, outdir, log) -> dic
         "generator": GENERATOR,
         "config_name": name,
         "z_min": repr(Z_MIN),
+        **extra_meta,
     }
     os.makedirs(os.path.join(outdir, "golden", name), exist_ok=True)
     path = os.path.join(outdir, "golden", name, f"{case}.safetensors")
@@ -361,7 +378,7 @@ def generate_all(outdir: str, log=print) -> dict:
         sd = synthetic.generate_state_dict(state_dict_spec(cfg), WEIGHT_SEED, cfg["pos_scale"])
         wsha = synthetic.weights_sha256(sd)
         p32, p64 = build_policies(cfg, sd)
-        for case in ("basic", "edge"):
+        for case in ("basic", "edge") + PREFIX_CASES:
             r = generate_case(cfg, text, name, case, p32, p64, wsha, outdir, log)
             inp, ap64 = r.pop("inputs"), r.pop("action_pred64")
             if name == "tiny" and case == "basic":

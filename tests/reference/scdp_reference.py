@@ -326,6 +326,22 @@ def ddim_schedule(cfg: dict) -> tuple[np.ndarray, list[int], int]:
     return ac, timesteps, ratio
 
 
+def hold_prefix(A: torch.Tensor, prefix_norm: torch.Tensor, z: torch.Tensor, first: int, mode: str,
+                a_t: float | None) -> torch.Tensor:
+    """docs/SPEC.md section 5.1: rows first..first+k of A set to the normalized prefix, or (mode
+    "noised", before a step at level a_t) to sqrt(a_t) prefix + sqrt(1 - a_t) z."""
+    k = prefix_norm.shape[0]
+    if k == 0:
+        return A
+    A = A.clone()
+    if mode == "noised" and a_t is not None:
+        a = torch.tensor(a_t, dtype=A.dtype)
+        A[first:first + k] = torch.sqrt(a) * prefix_norm + torch.sqrt(1 - a) * z
+    else:
+        A[first:first + k] = prefix_norm
+    return A
+
+
 def ddim_step(A: torch.Tensor, eps: torch.Tensor, t: int, ratio: int, ac: np.ndarray, clip: bool = True):
     """One DDIM (eta = 0) update in A's dtype. Returns (A_prev, x0_raw)."""
     dt = A.dtype
@@ -347,6 +363,8 @@ class RunInputs:
     noise: np.ndarray  # f32 [horizon, action_dim]
     camera_k: np.ndarray  # f32 [3, 3]
     camera_t: np.ndarray  # f32 [4, 4]
+    prefix: np.ndarray | None = None  # f32 [k, action_dim], committed actions for rows To-1..
+    prefix_mode: str = "replace"  # docs/SPEC.md section 5.1: "replace" or "noised"
 
 
 class SCDPPolicy(nn.Module):
@@ -466,8 +484,13 @@ class SCDPPolicy(nn.Module):
         ac, timesteps, ratio = ddim_schedule(cfg)
 
         A = noise.clone()
+        nd = self.normalizer.params_dict["action"]
+        prefix = np.zeros((0, cfg["action_dim"]), np.float32) if inp.prefix is None else inp.prefix
+        prefix_norm = torch.as_tensor(prefix).to(dt) * nd["scale"] + nd["offset"]
+        z = noise[To - 1: To - 1 + prefix.shape[0]].clone()
         rec = {k: [] for k in ("anchors_uv", "anchors_cam", "valid", "context", "eps", "sample", "x0_raw")}
         for t in timesteps:
+            A = hold_prefix(A, prefix_norm, z, To - 1, inp.prefix_mode, float(ac[t]))
             X, valid = self.anchors(A, state, R, tvec)
             uv = self.project(X, valid, K)
             ctx = self.context(feats, uv, valid)
@@ -477,7 +500,7 @@ class SCDPPolicy(nn.Module):
             for k, v in (("anchors_uv", uv), ("anchors_cam", X), ("valid", valid), ("context", ctx),
                          ("eps", eps), ("sample", A), ("x0_raw", x0_raw)):
                 rec[k].append(v)
-        nd = self.normalizer.params_dict["action"]
+        A = hold_prefix(A, prefix_norm, z, To - 1, inp.prefix_mode, None)
         action_pred = (A - nd["offset"]) / nd["scale"]
         out = {k: torch.stack(v) for k, v in rec.items()}
         out["action_pred"] = action_pred

@@ -6,7 +6,9 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use safetensors::{Dtype, SafeTensors};
-use scdp_engine::{Backend, Camera, Model, ModelConfig, Noise, Observer, Policy};
+use scdp_engine::{
+    Backend, Camera, Model, ModelConfig, Noise, Observer, Policy, Prefix, PrefixMode,
+};
 use weights_tool::writer::AlignedBytes;
 
 /// The repository's `tests/` folder.
@@ -27,6 +29,8 @@ pub struct Fixture {
     pub config: ModelConfig,
     pub seed: u64,
     pub weights_sha256: String,
+    /// How the fixture's `prefix` (committed actions, if it has one) is held.
+    pub prefix_mode: PrefixMode,
     pub images: Vec<u8>,
     pub arrays: HashMap<String, Array>,
 }
@@ -46,6 +50,11 @@ impl Fixture {
             .map_err(|error| anyhow::anyhow!("{}: config: {error}", path.display()))?;
         let seed = field("seed")?.parse()?;
         let weights_sha256 = field("weights_sha256")?;
+        let prefix_mode = match metadata.get("prefix_mode").map(String::as_str) {
+            None | Some("replace") => PrefixMode::Replace,
+            Some("noised") => PrefixMode::Noised,
+            Some(other) => bail!("{}: unknown prefix_mode `{other}`", path.display()),
+        };
         let tensors = SafeTensors::deserialize(&bytes)?;
         let mut images = Vec::new();
         let mut arrays = HashMap::new();
@@ -81,6 +90,7 @@ impl Fixture {
             config,
             seed,
             weights_sha256,
+            prefix_mode,
             images,
             arrays,
         })
@@ -94,6 +104,14 @@ impl Fixture {
 
     pub fn f32s(&self, name: &str) -> Vec<f32> {
         self.array(name).values.iter().map(|&v| v as f32).collect()
+    }
+
+    /// The committed actions of a prefix fixture, `[k, action_dim]` (none in the others).
+    pub fn prefix_actions(&self) -> Vec<f32> {
+        self.arrays
+            .get("prefix")
+            .map(|array| array.values.iter().map(|&v| v as f32).collect())
+            .unwrap_or_default()
     }
 
     pub fn camera(&self) -> Result<Camera> {
@@ -311,8 +329,10 @@ pub fn run_engine_with(weights: &[u8], fixture: &Fixture, backend: Backend) -> R
         })
         .collect();
     let noise = fixture.f32s("noise");
+    let prefix_actions = fixture.prefix_actions();
+    let prefix = Prefix::new(&prefix_actions, fixture.prefix_mode);
     let mut recorded = Recorded::default();
-    let actions = policy.infer_observed(Noise::Given(&noise), &mut recorded)?;
+    let actions = policy.infer_observed(Noise::Given(&noise), prefix, &mut recorded)?;
     Ok(EngineRun {
         action_pred: actions.action_pred().to_vec(),
         action: actions.action().to_vec(),

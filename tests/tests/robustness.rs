@@ -18,6 +18,7 @@ use alloc_guard::no_alloc;
 use scdp_engine::format::{self, CHECKSUM_RANGE, DType, WeightsFile};
 use scdp_engine::{
     ArenaPlan, Backend, Camera, ConfigError, Error, Model, ModelConfig, Noise, Observer, Policy,
+    Prefix,
 };
 use scdp_tests::{available_backends, synthetic_weights_file, synthetic_weights_file_as};
 use weights_tool::Quant;
@@ -943,7 +944,7 @@ fn run_with_camera(camera: Camera) -> (Vec<u32>, Vec<f32>, Vec<bool>) {
         let mut probe = ContextProbe {
             zero_context: Vec::with_capacity(CONFIG.num_inference_steps as usize),
         };
-        let actions = no_alloc(|| policy.infer_observed(Noise::Seed(11), &mut probe))
+        let actions = no_alloc(|| policy.infer_observed(Noise::Seed(11), Prefix::NONE, &mut probe))
             .expect("a defined result, not an error");
         assert!(actions.action_pred().iter().all(|v| v.is_finite()));
         let bits = actions.action_pred().iter().map(|v| v.to_bits()).collect();
