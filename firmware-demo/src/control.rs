@@ -20,6 +20,12 @@
 //! - action `i` of a chunk whose newest frame was captured at `t_obs` is for `t_obs + i dt`;
 //!   on arrival the actions whose time has passed are dropped as stale, and the chunk takes
 //!   over the queue from its first valid timestamp ([`crate::queue`]);
+//! - an inference is given, as its committed prefix, the actions that will have run from its
+//!   observation time until it is expected to arrive (the previous inference's compute
+//!   time from now): those already executed since the observation and those still queued,
+//!   as long as they are one per tick; the policy conditions the rest of the chunk on them
+//!   (or ignores them), and each hand-over's seam (the jump from the last old action to the
+//!   first new one, the largest step among the next few) is counted;
 //! - a later tick with no action holds still, and every inference outstanding at that tick
 //!   misses its deadline (the first tick the queue could not serve);
 //! - only the frames some inference looks at are encoded ([`Timing::frame_is_used`]); a
@@ -28,7 +34,7 @@
 
 use heapless::Deque;
 
-use crate::queue::{ActionQueue, Due, MAX_ACTION_DIM, MAX_CHUNK};
+use crate::queue::{ActionQueue, Due, MAX_ACTION_DIM, MAX_CHUNK, TimedAction};
 use crate::stats::LoopStats;
 use crate::timing::{Timing, TimingError};
 
@@ -47,8 +53,10 @@ pub trait PolicyPort {
     fn push_observation(&mut self, image: &[u8], state: &[f32]) -> Result<(), Self::Error>;
 
     /// Writes the chunk to execute, `[n_action_steps, action_dim]`, into `chunk`. Action `i` is
-    /// for the newest observation's time plus `i dt`.
-    fn infer(&mut self, chunk: &mut [f32]) -> Result<(), Self::Error>;
+    /// for the newest observation's time plus `i dt`. `prefix`, `[k, action_dim]` (`k` may
+    /// be 0), holds the actions that run at the chunk's first `k` times whatever it says (the
+    /// robot does not wait for it): a policy that can, continues them.
+    fn infer(&mut self, prefix: &[f32], chunk: &mut [f32]) -> Result<(), Self::Error>;
 }
 
 /// Measures real compute time.
@@ -127,6 +135,12 @@ pub struct ControlLoop<'f, P, C, W> {
     running: Option<(Running, u64)>,
     /// The chunk of the running inference, held until it is delivered.
     chunk: [f32; MAX_CHUNK * MAX_ACTION_DIM],
+    /// The committed prefix given to the running inference.
+    prefix: [f32; MAX_CHUNK * MAX_ACTION_DIM],
+    /// The actions run lately, oldest first: the part of a prefix already executed.
+    executed: Deque<TimedAction, MAX_CHUNK>,
+    /// Compute time of the last inference: how long the next one is expected to take.
+    last_infer_us: u64,
     queue: ActionQueue,
     now_us: u64,
     next_state_us: u64,
@@ -174,6 +188,9 @@ impl<'f, P: PolicyPort, C: Stopwatch, W: Plant> ControlLoop<'f, P, C, W> {
             encodes_ahead: 0,
             running: None,
             chunk: [0.0; MAX_CHUNK * MAX_ACTION_DIM],
+            prefix: [0.0; MAX_CHUNK * MAX_ACTION_DIM],
+            executed: Deque::new(),
+            last_infer_us: 0,
             queue: ActionQueue::new(),
             now_us: 0,
             next_state_us: 0,
@@ -253,6 +270,10 @@ impl<'f, P: PolicyPort, C: Stopwatch, W: Plant> ControlLoop<'f, P, C, W> {
         match due {
             Due::Run(action) => {
                 self.stats.actions_executed += 1;
+                if self.executed.is_full() {
+                    self.executed.pop_front();
+                }
+                let _ = self.executed.push_back(action);
                 self.plant.command(now, Some(action.values()));
             }
             Due::Hold => {
@@ -339,7 +360,10 @@ impl<'f, P: PolicyPort, C: Stopwatch, W: Plant> ControlLoop<'f, P, C, W> {
             self.waiting_inference = None;
             self.encodes_ahead = 0;
             let length = self.timing.n_action_steps * self.dims.action_dim;
-            self.policy.infer(&mut self.chunk[..length])?;
+            let rows = self.committed_prefix(observed_us, now + self.last_infer_us);
+            self.stats.prefix_rows += rows as u64;
+            let prefix = &self.prefix[..rows * self.dims.action_dim];
+            self.policy.infer(prefix, &mut self.chunk[..length])?;
             Running::Infer { observed_us, late }
         } else {
             return Ok(());
@@ -347,10 +371,38 @@ impl<'f, P: PolicyPort, C: Stopwatch, W: Plant> ControlLoop<'f, P, C, W> {
         let compute_us = self.stopwatch.now_us().saturating_sub(started);
         match running {
             Running::Encode => self.stats.encode_time.record(compute_us),
-            Running::Infer { .. } => self.stats.infer_time.record(compute_us),
+            Running::Infer { .. } => {
+                self.stats.infer_time.record(compute_us);
+                self.last_infer_us = compute_us;
+            }
         }
         self.running = Some((running, now + compute_us));
         Ok(())
+    }
+
+    /// Writes into `self.prefix` the actions that run at `observed_us + i dt` for the ticks
+    /// before `arrival_us` (at most `n_action_steps - 1`, so the chunk has one of its own),
+    /// from those executed and those queued, stopping at the first tick with none; returns
+    /// how many rows.
+    fn committed_prefix(&mut self, observed_us: u64, arrival_us: u64) -> usize {
+        let period = self.timing.control_period_us;
+        let action_dim = self.dims.action_dim;
+        let mut rows = 0;
+        while rows + 1 < self.timing.n_action_steps {
+            let time = observed_us + rows as u64 * period;
+            if time >= arrival_us {
+                break;
+            }
+            let found = self
+                .executed
+                .iter()
+                .chain(self.queue.iter())
+                .find(|action| action.time_us == time);
+            let Some(action) = found else { break };
+            self.prefix[rows * action_dim..][..action_dim].copy_from_slice(action.values());
+            rows += 1;
+        }
+        rows
     }
 
     fn finish_job(&mut self, now: u64) {
@@ -361,13 +413,30 @@ impl<'f, P: PolicyPort, C: Stopwatch, W: Plant> ControlLoop<'f, P, C, W> {
             Running::Encode => self.stats.frames_encoded += 1,
             Running::Infer { observed_us, late } => {
                 let length = self.timing.n_action_steps * self.dims.action_dim;
+                let action_dim = self.dims.action_dim;
                 let report = self.queue.hand_over(
                     &self.chunk[..length],
-                    self.dims.action_dim,
+                    action_dim,
                     observed_us,
                     self.timing.control_period_us,
                     now,
                 );
+                if report.queued > 0 {
+                    // The action before the take-over: the last old one still queued, or
+                    // the last one run.
+                    let takeover_us =
+                        observed_us + report.stale as u64 * self.timing.control_period_us;
+                    let before = self
+                        .queue
+                        .iter()
+                        .take_while(|action| action.time_us < takeover_us)
+                        .last()
+                        .or(self.executed.back());
+                    if let Some(before) = before {
+                        let new = &self.chunk[report.stale * action_dim..length];
+                        self.stats.seams.record(before.values(), new, action_dim);
+                    }
+                }
                 debug_assert_eq!(report.overflowed, 0, "chunks are at most MAX_CHUNK long");
                 self.stats.inferences += 1;
                 self.stats.stale_actions += report.stale as u64;

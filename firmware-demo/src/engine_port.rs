@@ -1,7 +1,7 @@
 //! The engine behind the loop's [`PolicyPort`]: the demo only wires it, the engine code is
 //! the same in every build.
 
-use scdp_engine::{Error, Noise, Policy};
+use scdp_engine::{Error, Noise, Policy, Prefix, PrefixMode};
 
 use crate::control::PolicyPort;
 
@@ -15,6 +15,9 @@ pub struct AnchorPath {
 
 pub struct EnginePolicy<'w, 'a> {
     policy: Policy<'w, 'a>,
+    /// How the loop's committed prefix is held; `None` ignores it (the hand-over then drops
+    /// the chunk's own actions for those times as stale).
+    prefix_mode: Option<PrefixMode>,
     seed: u64,
     inferences: u64,
     last_path: Option<AnchorPath>,
@@ -23,9 +26,10 @@ pub struct EnginePolicy<'w, 'a> {
 impl<'w, 'a> EnginePolicy<'w, 'a> {
     /// Inference `k` draws its initial noise from seed `seed + k`: fresh noise every time, as in
     /// training, yet a run is reproducible.
-    pub fn new(policy: Policy<'w, 'a>, seed: u64) -> Self {
+    pub fn new(policy: Policy<'w, 'a>, seed: u64, prefix_mode: Option<PrefixMode>) -> Self {
         EnginePolicy {
             policy,
+            prefix_mode,
             seed,
             inferences: 0,
             last_path: None,
@@ -48,11 +52,15 @@ impl PolicyPort for EnginePolicy<'_, '_> {
         self.policy.push_observation(image, state)
     }
 
-    fn infer(&mut self, chunk: &mut [f32]) -> Result<(), Error> {
+    fn infer(&mut self, prefix: &[f32], chunk: &mut [f32]) -> Result<(), Error> {
         let seed = self.seed.wrapping_add(self.inferences);
         self.inferences += 1;
         let points = self.policy.config().anchor_count();
-        let actions = self.policy.infer(Noise::Seed(seed))?;
+        let prefix = match self.prefix_mode {
+            Some(mode) => Prefix::new(prefix, mode),
+            None => Prefix::NONE,
+        };
+        let actions = self.policy.infer_with(Noise::Seed(seed), prefix)?;
         // The loop sizes `chunk` from the same config the model was checked against.
         chunk.copy_from_slice(actions.action());
         let anchors = actions.anchors_uv();

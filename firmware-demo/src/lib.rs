@@ -22,5 +22,5 @@ pub use control::{ControlLoop, Dims, FRAME_SLOTS, Plant, PolicyPort, SetupError,
 pub use engine_port::{AnchorPath, EnginePolicy};
 pub use queue::{ActionQueue, Due, HandOver, TimedAction};
 pub use scene::{Calibration, SimRobot};
-pub use stats::{Histogram, LoopStats};
+pub use stats::{Histogram, LoopStats, SEAM_WINDOW, Seams};
 pub use timing::Timing;

@@ -105,6 +105,58 @@ impl Histogram {
     }
 }
 
+/// Actions of a new chunk after its first that the seam measure looks at.
+pub const SEAM_WINDOW: usize = 4;
+
+/// The seams between chunks, in action units (Euclidean norm over the action's values):
+/// at each hand-over, the jump from the action run last before the new chunk takes over to
+/// the chunk's first, and the largest step-to-step change among its first
+/// [`SEAM_WINDOW`] + 1 actions.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Seams {
+    pub count: u64,
+    pub jump_sum: f64,
+    pub jump_max: f64,
+    pub early_step_sum: f64,
+    pub early_step_max: f64,
+}
+
+impl Seams {
+    /// One hand-over: `before` the last old action, `new` the chunk's actions from its take-over.
+    pub fn record(&mut self, before: &[f32], new: &[f32], action_dim: usize) {
+        let distance = |a: &[f32], b: &[f32]| {
+            libm::sqrt(
+                a.iter()
+                    .zip(b)
+                    .map(|(x, y)| f64::from(x - y) * f64::from(x - y))
+                    .sum::<f64>(),
+            )
+        };
+        let mut rows = new.chunks_exact(action_dim).take(SEAM_WINDOW + 1);
+        let Some(first) = rows.next() else { return };
+        let jump = distance(before, first);
+        let mut early = 0.0f64;
+        let mut previous = first;
+        for row in rows {
+            early = early.max(distance(previous, row));
+            previous = row;
+        }
+        self.count += 1;
+        self.jump_sum += jump;
+        self.jump_max = self.jump_max.max(jump);
+        self.early_step_sum += early;
+        self.early_step_max = self.early_step_max.max(early);
+    }
+
+    pub fn jump_mean(&self) -> Option<f64> {
+        (self.count > 0).then(|| self.jump_sum / self.count as f64)
+    }
+
+    pub fn early_step_mean(&self) -> Option<f64> {
+        (self.count > 0).then(|| self.early_step_sum / self.count as f64)
+    }
+}
+
 /// Everything the loop counts.
 #[derive(Clone, Debug, Default)]
 pub struct LoopStats {
@@ -139,6 +191,9 @@ pub struct LoopStats {
     pub encode_time: Histogram,
     /// Compute time of one `infer`.
     pub infer_time: Histogram,
+    /// Rows of committed prefix given to the inferences, in all.
+    pub prefix_rows: u64,
+    pub seams: Seams,
 }
 
 #[cfg(test)]
@@ -186,6 +241,22 @@ mod tests {
             previous_upper = Some(upper);
         }
         assert_eq!(Histogram::bucket(u64::MAX), BUCKETS - 1);
+    }
+
+    #[test]
+    fn seams_measure_the_jump_and_the_early_steps() {
+        let mut seams = Seams::default();
+        // 2-D actions: the last old one at the origin; the new chunk starts 3-4-5 away,
+        // then steps of 1, 2 (the largest), 0.5, 1, and 10 past the window.
+        let new = [3.0, 4.0, 4.0, 4.0, 6.0, 4.0, 6.5, 4.0, 6.5, 5.0, 16.5, 5.0];
+        seams.record(&[0.0, 0.0], &new, 2);
+        seams.record(&[3.0, 4.0], &new[..2], 2);
+        assert_eq!(seams.count, 2);
+        assert_eq!(seams.jump_max, 5.0);
+        assert_eq!(seams.jump_mean(), Some(2.5));
+        assert_eq!(seams.early_step_max, 2.0);
+        assert_eq!(seams.early_step_mean(), Some(1.0));
+        assert_eq!(Seams::default().jump_mean(), None);
     }
 
     #[test]

@@ -39,6 +39,8 @@ struct FakePolicy {
     pushes: Vec<f32>,
     /// The history each inference saw.
     seen: Vec<Vec<f32>>,
+    /// The committed prefix each inference was given.
+    prefixes: Vec<Vec<f32>>,
 }
 
 impl FakePolicy {
@@ -51,6 +53,7 @@ impl FakePolicy {
             history: Vec::new(),
             pushes: Vec::new(),
             seen: Vec::new(),
+            prefixes: Vec::new(),
         }
     }
 }
@@ -72,8 +75,9 @@ impl PolicyPort for FakePolicy {
         Ok(())
     }
 
-    fn infer(&mut self, chunk: &mut [f32]) -> Result<(), Self::Error> {
+    fn infer(&mut self, prefix: &[f32], chunk: &mut [f32]) -> Result<(), Self::Error> {
         let index = self.seen.len();
+        self.prefixes.push(prefix.to_vec());
         let cost = self.infer_us[index.min(self.infer_us.len() - 1)];
         self.clock.advance(cost);
         self.seen.push(self.history.clone());
@@ -118,6 +122,7 @@ struct Run {
     executed: Executed,
     pushes: Vec<f32>,
     seen: Vec<Vec<f32>>,
+    prefixes: Vec<Vec<f32>>,
 }
 
 fn run(timing: Timing, encode_us: u64, infer_us: &[u64], until_us: u64) -> Run {
@@ -143,6 +148,7 @@ fn run(timing: Timing, encode_us: u64, infer_us: &[u64], until_us: u64) -> Run {
         executed: executed.take(),
         pushes: policy.pushes.clone(),
         seen: policy.seen.clone(),
+        prefixes: policy.prefixes.clone(),
     }
 }
 
@@ -168,6 +174,51 @@ fn assert_actions_run_at_their_time(run: &Run) {
             );
         }
     }
+}
+
+/// Each inference's committed prefix is what the robot ran at its first times: row `i` is
+/// the action executed at the observation time plus `i dt`, and it reaches up to the tick
+/// the previous inference's compute time says the chunk arrives by.
+#[test]
+fn the_committed_prefix_is_what_runs_before_the_chunk_arrives() {
+    // Inferences take 150 ms (1.5 ticks): from the second on, the prefix has the ticks at
+    // the observation and one after it (the observation tick's action comes from the old
+    // chunk, the next ends before 150 ms).
+    let run = run(timing(6), 1_000, &[150_000], 6_000_000);
+    assert_actions_run_at_their_time(&run);
+    assert!(
+        run.prefixes[0].is_empty(),
+        "nothing runs before the first chunk"
+    );
+    let mut checked = 0;
+    for (inference, prefix) in run.prefixes.iter().enumerate().skip(1) {
+        let newest_frame = *run.seen[inference].last().unwrap();
+        let observed = (f64::from(newest_frame) * 1e6).round() as u64;
+        assert_eq!(prefix.len(), 2 * ACTION_DIM, "inference {inference}");
+        for (row, values) in prefix.chunks_exact(ACTION_DIM).enumerate() {
+            let time = observed + row as u64 * DT;
+            let ran = run
+                .executed
+                .iter()
+                .find(|(at, _)| *at == time)
+                .map(|&(_, ran)| ran);
+            assert_eq!(
+                ran,
+                Some(Some((values[0] as usize, values[1] as usize))),
+                "inference {inference} row {row}"
+            );
+            checked += 1;
+        }
+    }
+    assert!(checked >= 16, "{checked}");
+    assert_eq!(
+        run.stats.prefix_rows,
+        run.prefixes
+            .iter()
+            .map(|p| (p.len() / ACTION_DIM) as u64)
+            .sum::<u64>()
+    );
+    assert_eq!(run.stats.seams.count, run.stats.inferences - 1);
 }
 
 #[test]

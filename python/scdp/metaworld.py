@@ -307,12 +307,13 @@ class TorchRuntime:
         frames = [self.frames[0]] * (self.cfg["n_obs_steps"] - len(self.frames)) + self.frames
         return np.stack([f[0] for f in frames]), np.stack([f[1] for f in frames])
 
-    def infer(self, noise):
+    def infer(self, noise, prefix=None, prefix_mode="replace"):
         torch = self.torch
         images, state = self.history()
+        held = None if prefix is None or len(prefix) == 0 else torch.as_tensor(prefix)[None]
         action_pred, anchors = self.policy.predict(
             torch.as_tensor(images)[None], torch.as_tensor(state)[None], *self.camera,
-            torch.as_tensor(noise)[None], record_anchors=True,
+            torch.as_tensor(noise)[None], record_anchors=True, prefix=held, prefix_mode=prefix_mode,
         )
         return action_pred[0].numpy(), anchors[:, 0].numpy()
 
@@ -338,8 +339,8 @@ class EngineRuntime:
     def push(self, image, state):
         self.policy.push_observation(image, state)
 
-    def infer(self, noise):
-        result = self.policy.infer(noise=noise, full=True)
+    def infer(self, noise, prefix=None, prefix_mode="replace"):
+        result = self.policy.infer(noise=noise, full=True, prefix=prefix, prefix_mode=prefix_mode)
         return result["action_pred"], result["anchors_uv"]
 
 
@@ -364,46 +365,120 @@ def episode_noise(seed: int, chunk: int, cfg: dict) -> np.ndarray:
     return rng.standard_normal((cfg["horizon"], cfg["action_dim"])).astype(np.float32)
 
 
-def run_episode(scene, runtime, cfg, seed, record=None, frames=None):
-    """Diffusion Policy's receding horizon: infer from the last To frames, execute the
-    n_action_steps actions from "now" (rows To-1 ..), infer again. The simulation waits for
-    the policy, so no step is skipped for latency. Only the frames the policy sees are
-    rendered (the last To before each inference). `record` (a list, torch runtime only)
-    receives each inference's inputs and output; `frames` each executed step's frame with the
-    anchors of its chunk."""
+# How many of a new chunk's first actions the seam measure looks at.
+SEAM_WINDOW = 4
+
+
+def run_episode(scene, runtime, cfg, seed, record=None, frames=None, latency=0, prefix_mode=None):
+    """Diffusion Policy's receding horizon with an inference that takes `latency` control
+    steps. The first chunk is computed while the arm waits; it executes the n_action_steps
+    actions from "now" (rows To-1 ..). Every later chunk is started from the observation
+    taken when `latency` actions of the current one remain, and those actions keep running
+    while it is computed: its rows To-1 .. To-1+latency are then in the past. They are
+    dropped (`prefix_mode` None, the firmware demo's rule) or were given to the inference as
+    its committed prefix (`prefix_mode` "replace" or "noised"); the chunk executes the
+    n_action_steps rows after them. With latency 0 this is the loop where the simulation
+    waits for the policy. Only the frames the policy sees are rendered (the last To before
+    each inference). `record` (a list, torch runtime only) receives each inference's inputs
+    and output; `frames` each executed step's frame with the anchors of its chunk.
+
+    Returns (solved, steps, inference milliseconds, seams): for each hand-over, the action
+    executed last from the old chunk and the first SEAM_WINDOW + 1 of the new one."""
     scene.reset(seed)
     camera_k, camera_t = scene.camera_model()
     runtime.reset(camera_k, camera_t)
     first, count = cfg["n_obs_steps"] - 1, cfg["n_action_steps"]
-    steps, chunk, solved, latencies = 0, 0, False, []
+    if first + latency + count > cfg["horizon"]:
+        raise SystemExit(f"latency {latency} leaves fewer than n_action_steps rows of the horizon")
+    steps, chunk, solved, latencies, seams = 0, 0, False, [], []
+    plan, anchors, last = [], None, None
     image, state = scene.render(), scene.state()
     while steps < scene.max_steps and not solved:
+        # The observation: now, with `latency` actions of the plan still to run (none for the
+        # first chunk, which the arm waits for).
+        committed = np.array(plan[len(plan) - latency:] if chunk else [], np.float32).reshape(-1, cfg["action_dim"])
         noise = episode_noise(seed, chunk, cfg)
         started = time.perf_counter()
         runtime.push(image, state)
-        action_pred, anchors = runtime.infer(noise)
+        held = committed if prefix_mode else None
+        action_pred, new_anchors = runtime.infer(noise, held, prefix_mode or "replace")
         latencies.append((time.perf_counter() - started) * 1e3)
         if record is not None:
             images, states = runtime.history()
             record.append({"images": images, "state": states, "noise": noise, "camera_k": camera_k,
-                           "camera_t": camera_t, "action_pred": action_pred, "seed": seed, "chunk": chunk})
-        actions = action_pred[first : first + count]
-        for index, action in enumerate(actions):
+                           "camera_t": camera_t, "action_pred": action_pred, "seed": seed, "chunk": chunk,
+                           "prefix": held, "prefix_mode": prefix_mode})
+        # While it computes, the old plan's last `latency` actions run.
+        skip = len(committed)
+        for action in committed:
             if frames is not None:
                 frames.append((scene.render(), anchors))
-            if index == len(actions) - 1 and cfg["n_obs_steps"] > 1:
+            solved = scene.step(action)
+            steps += 1
+            last = action
+            if solved or steps >= scene.max_steps:
+                break
+        if solved or steps >= scene.max_steps:
+            break
+        plan = list(action_pred[first + skip : first + skip + count])
+        anchors = new_anchors
+        if last is not None:
+            seams.append((last, np.array(plan[: SEAM_WINDOW + 1])))
+        # Run the plan up to the next observation, which is taken with `latency` actions left
+        # (the frame before it, too, when the policy looks at two).
+        run_now = len(plan) - latency
+        for index, action in enumerate(plan[:run_now]):
+            if frames is not None:
+                frames.append((scene.render(), anchors))
+            if index == run_now - 1 and cfg["n_obs_steps"] > 1:
                 runtime.push(scene.render(), scene.state())
             solved = scene.step(action)
             steps += 1
+            last = action
             if solved or steps >= scene.max_steps:
                 break
         image, state = scene.render(), scene.state()
         chunk += 1
-    return solved, steps, latencies
+    return solved, steps, latencies, seams
+
+
+def seam_figures(seams):
+    """At each hand-over, in action units (the Euclidean norm over the action's dimensions):
+    the jump from the old chunk's last executed action to the new chunk's first, and the
+    largest step-to-step change among the new chunk's first SEAM_WINDOW + 1 actions; their
+    means, 95th percentiles and maxima over every hand-over."""
+    if not seams:
+        return {"handovers": 0}
+    jumps = np.array([np.linalg.norm(new[0] - old) for old, new in seams])
+    early = np.array([np.linalg.norm(np.diff(new, axis=0), axis=1).max() if len(new) > 1 else 0.0
+                      for _, new in seams])
+    figures = {"handovers": len(seams)}
+    for name, values in (("jump", jumps), ("early_step_max", early)):
+        figures[f"{name}_mean"] = round(float(values.mean()), 5)
+        figures[f"{name}_p95"] = round(float(np.quantile(values, 0.95)), 5)
+        figures[f"{name}_max"] = round(float(values.max()), 5)
+    return figures
+
+
+def measured_latency_steps(runtime, cfg, scene, control_hz, seed):
+    """The control steps one inference of `runtime` takes at `control_hz`: the median of 5
+    inferences (after one warm-up) on the first observation of episode `seed`, rounded up."""
+    scene.reset(seed)
+    runtime.reset(*scene.camera_model())
+    runtime.push(scene.render(), scene.state())
+    noise = episode_noise(seed, 0, cfg)
+    runtime.infer(noise)
+    times = []
+    for _ in range(5):
+        started = time.perf_counter()
+        runtime.infer(noise)
+        times.append(time.perf_counter() - started)
+    milliseconds = float(np.median(times)) * 1e3
+    return max(1, math.ceil(milliseconds * control_hz / 1e3)), milliseconds
 
 
 def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backend="auto", gif=None,
-             agreement=False, record_count=0):
+             agreement=False, record_count=0, latency=0, prefix_mode=None, control_hz=None):
     cfg = load_config(model_dir)
     demo_seeds = set()
     if (model_dir / DEMOS).exists():
@@ -418,10 +493,16 @@ def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backe
         raise SystemExit("--agreement compares the engine with the torch runtime's rollouts: use --runtime torch")
     scene = sim.Scene(task)
     record = [] if agreement else None
-    successes, steps_taken, latencies = 0, [], []
+    measured_ms = None
+    if control_hz is not None:
+        latency, measured_ms = measured_latency_steps(runtime, cfg, scene, control_hz, seeds[0])
+        print(f"one inference {measured_ms:.1f} ms: {latency} steps at {control_hz:g} Hz", file=sys.stderr)
+    successes, steps_taken, latencies, seams = 0, [], [], []
     for number, seed in enumerate(seeds):
         frames = [] if gif is not None and number == 0 else None
-        solved, steps, times = run_episode(scene, runtime, cfg, seed, record=record, frames=frames)
+        solved, steps, times, episode_seams = run_episode(
+            scene, runtime, cfg, seed, record=record, frames=frames, latency=latency, prefix_mode=prefix_mode)
+        seams.extend(episode_seams)
         if frames is not None:
             write_rollout_gif(gif, frames)
         successes += solved
@@ -435,7 +516,11 @@ def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backe
         "first_seed": first_seed, "mean_steps": float(np.mean(steps_taken)),
         "infer_ms_p50": float(np.median(latencies)),
         "backend": getattr(getattr(runtime, "policy", None), "backend", "torch"),
+        "latency_steps": latency, "prefix": prefix_mode, "seams": seam_figures(seams),
     }
+    if control_hz is not None:
+        result["control_hz"] = control_hz
+        result["latency_measured_ms"] = round(measured_ms, 3)
     if record is not None:
         scale = runtime.policy.normalizer.params_dict["action"]["scale"].detach().numpy()
         result["agreement"] = {
@@ -456,7 +541,7 @@ def agreement_with(runtime, record, action_scale):
         runtime.reset(entry["camera_k"], entry["camera_t"])
         for image, state in zip(entry["images"], entry["state"]):
             runtime.push(image, state)
-        action_pred, _ = runtime.infer(entry["noise"])
+        action_pred, _ = runtime.infer(entry["noise"], entry.get("prefix"), entry.get("prefix_mode") or "replace")
         errors.append(np.abs(action_pred - entry["action_pred"]) * action_scale)
     errors = np.stack(errors)
     return {"inferences": len(record), "max": float(errors.max()), "mean": float(errors.mean()),
@@ -554,6 +639,13 @@ def main(argv=None) -> None:
                    help="torch runtime: also run engine f32 and int8 on every recorded inference")
     p.add_argument("--record", type=int, default=0, metavar="N",
                    help="with --agreement: keep N recorded inferences in MODEL_DIR/observations")
+    p.add_argument("--latency-steps", type=int, default=0, metavar="D",
+                   help="control steps one inference takes: the arm runs the old chunk meanwhile")
+    p.add_argument("--control-hz", type=float, metavar="HZ",
+                   help="take D from this runtime's measured inference time at this control rate")
+    p.add_argument("--prefix", choices=("replace", "noised"),
+                   help="give the actions run during the inference as the chunk's committed prefix "
+                        "(default: drop the new chunk's actions whose time has passed)")
     args = parser.parse_args(argv)
     if args.command == "collect":
         collect(args.task, args.model_dir, args.episodes, args.first_seed)
@@ -565,7 +657,8 @@ def main(argv=None) -> None:
         training_cost(args.model_dir, args.batches, args.batch_size, args.threads)
     elif args.command == "eval":
         evaluate(args.task, args.model_dir, args.runtime, args.episodes, args.first_seed, args.threads,
-                 args.backend, args.gif, args.agreement, args.record)
+                 args.backend, args.gif, args.agreement, args.record, args.latency_steps, args.prefix,
+                 args.control_hz)
 
 
 if __name__ == "__main__":

@@ -135,7 +135,8 @@ def test_golden_fixture(path, backend, models, weights):
     _, scale = weights.for_fixture(path)
     policy = ready_policy(models[path], case, backend)
     assert policy.backend == backend
-    result = policy.infer(noise=case["noise"], full=True)
+    prefix_mode = fixture_metadata(path).get("prefix_mode", "replace")
+    result = policy.infer(noise=case["noise"], full=True, prefix=case.get("prefix"), prefix_mode=prefix_mode)
 
     truth = case["ref64.action_pred"]
     action_error = float((np.abs(result["action_pred"] - truth) * scale).max())
@@ -156,7 +157,8 @@ def test_golden_fixture(path, backend, models, weights):
 
 
 def test_fixtures_are_there():
-    assert len(FIXTURES) >= 6, FIXTURES
+    assert len(FIXTURES) >= 12, FIXTURES
+    assert sum("prefix" in load_file(str(path)) for path in FIXTURES) >= 6
 
 
 # --- (2) errors -----------------------------------------------------------------------------
@@ -337,6 +339,34 @@ def test_bad_noise_and_seed(tiny_model, tiny):
         with pytest.raises(ValueError, match=r"seed must be an integer in \[0, 2\*\*64\)"):
             policy.infer(seed=seed)
     assert policy.infer(seed=2**64 - 1).shape == (4, 4)
+
+
+def test_bad_prefixes(tiny_model, tiny):
+    policy = ready_policy(tiny_model, tiny)
+    with pytest.raises(ValueError, match=r"prefix_mode must be \"replace\" or \"noised\"; got \"soft\""):
+        policy.infer(seed=1, prefix=np.zeros((2, 4)), prefix_mode="soft")
+    with pytest.raises(ValueError, match=r"prefix must be 2-D, \[k, action_dim\] = \(k, 4\); got shape \(8,\)"):
+        policy.infer(seed=1, prefix=np.zeros(8))
+    # tiny: horizon 8, To 2, so at most 7 rows.
+    with engine_error("prefix has 32 values; expected whole rows of 4, at most 7 rows"):
+        policy.infer(seed=1, prefix=np.zeros((8, 4)))
+    bad = np.zeros((2, 4))
+    bad[1, 2] = np.inf
+    with engine_error("prefix contains NaN or infinity"):
+        policy.infer(seed=1, prefix=bad, prefix_mode="noised")
+
+
+@pytest.mark.parametrize("mode", ["replace", "noised"])
+def test_prefix_rows_come_back_and_an_empty_one_changes_nothing(tiny_model, tiny, mode):
+    policy = ready_policy(tiny_model, tiny)
+    plain = policy.infer(seed=3, full=True)["action_pred"]
+    empty = policy.infer(seed=3, full=True, prefix=np.zeros((0, 4)), prefix_mode=mode)["action_pred"]
+    np.testing.assert_array_equal(empty, plain)
+    prefix = plain[2:5] + 0.05
+    held = policy.infer(seed=3, full=True, prefix=prefix, prefix_mode=mode)
+    np.testing.assert_allclose(held["action_pred"][1:4], prefix, rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(held["action"][:3], held["action_pred"][1:4])
+    assert not np.array_equal(held["action_pred"][4:], plain[4:])
 
 
 # --- (3) behaviour --------------------------------------------------------------------------

@@ -17,7 +17,7 @@ use firmware_demo::{
     Calibration, ControlLoop, Dims, EnginePolicy, FRAME_SLOTS, Histogram, LoopStats, SimRobot,
     Stopwatch, Timing,
 };
-use scdp_engine::{ArenaPlan, Model, ModelConfig, Policy};
+use scdp_engine::{ArenaPlan, Model, ModelConfig, Policy, PrefixMode};
 use weights_tool::writer::{AlignedBytes, aligned_copy};
 use weights_tool::{Quant, load_config, synth_state_dict};
 
@@ -53,6 +53,28 @@ struct Cli {
     /// Print the camera calibration in use as a --camera file and exit.
     #[arg(long)]
     print_camera: bool,
+    /// How an inference holds the actions that run before its chunk arrives (docs/SPEC.md
+    /// section 5.1): "replace" or "noised" condition the chunk on them; "none" ignores them
+    /// (the chunk's own actions for those ticks are dropped as stale).
+    #[arg(long, default_value = "replace", value_name = "MODE")]
+    prefix: PrefixArg,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum PrefixArg {
+    None,
+    Replace,
+    Noised,
+}
+
+impl PrefixArg {
+    fn mode(self) -> Option<PrefixMode> {
+        match self {
+            PrefixArg::None => None,
+            PrefixArg::Replace => Some(PrefixMode::Replace),
+            PrefixArg::Noised => Some(PrefixMode::Noised),
+        }
+    }
 }
 
 const DEFAULT_PRESET: &str = "metaworld";
@@ -182,7 +204,7 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
     let mut control = ControlLoop::new(
         timing,
         dims,
-        EnginePolicy::new(policy, cli.seed),
+        EnginePolicy::new(policy, cli.seed, cli.prefix.mode()),
         WallClock(wall),
         robot,
         &mut frames,
@@ -287,6 +309,19 @@ fn print_summary(stats: &LoopStats, simulated_us: u64, wall_seconds: f64) {
     println!(
         "  deadline misses {}; stale actions dropped {}; queued actions replaced at hand-over {}",
         stats.deadline_misses, stats.stale_actions, stats.replaced_actions,
+    );
+    let seams = &stats.seams;
+    let figure = |value: Option<f64>| value.map_or("-".into(), |v| format!("{v:.4}"));
+    println!(
+        "  seams over {} hand-overs ({} committed prefix rows given): jump mean {} max {:.4}; \
+         largest of the next {} steps mean {} max {:.4} (action units)",
+        seams.count,
+        stats.prefix_rows,
+        figure(seams.jump_mean()),
+        seams.jump_max,
+        firmware_demo::SEAM_WINDOW,
+        figure(seams.early_step_mean()),
+        seams.early_step_max,
     );
 }
 

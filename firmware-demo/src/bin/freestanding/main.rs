@@ -28,7 +28,7 @@ use core::sync::atomic::{AtomicBool, Ordering};
 
 use firmware_demo::scene::{Blob, Calibration, draw_scene};
 use firmware_demo::{ControlLoop, Dims, EnginePolicy, FRAME_SLOTS, SimRobot, Stopwatch, Timing};
-use scdp_engine::{Aligned, Arena, ArenaPlan, Model, ModelConfig, Noise, Policy};
+use scdp_engine::{Aligned, Arena, ArenaPlan, Model, ModelConfig, Noise, Policy, PrefixMode};
 
 const CONFIG: ModelConfig = ModelConfig::TINY;
 const PLAN: ArenaPlan = ArenaPlan::new(&CONFIG);
@@ -227,7 +227,7 @@ fn checks_and_loop(out: &mut sys::Output) -> Result<(), Failure> {
     let mut control = ControlLoop::new(
         timing,
         dims,
-        EnginePolicy::new(policy, SEED),
+        EnginePolicy::new(policy, SEED, Some(PrefixMode::Replace)),
         Monotonic,
         robot,
         frames,
