@@ -114,8 +114,9 @@ pub enum Error {
     NonFiniteState,
     /// NaN or infinity in the given noise.
     NonFiniteNoise,
-    /// A committed prefix that is not whole rows of `action_dim` values, or has more rows
-    /// than the horizon holds after the observation steps (`horizon - n_obs_steps + 1`).
+    /// A committed prefix or planned continuation that is not whole rows of `action_dim`
+    /// values, or the two with more rows than the horizon holds after the observation steps
+    /// (`horizon - n_obs_steps + 1`).
     PrefixSize {
         max_rows: usize,
         action_dim: usize,
@@ -188,9 +189,11 @@ impl fmt::Display for Error {
                 found,
             } => write!(
                 f,
-                "prefix has {found} values; expected whole rows of {action_dim}, at most {max_rows} rows"
+                "prefix has {found} values; expected whole rows of {action_dim}, at most {max_rows} rows with the planned ones"
             ),
-            Self::NonFinitePrefix => f.write_str("prefix contains NaN or infinity"),
+            Self::NonFinitePrefix => {
+                f.write_str("prefix or planned actions contain NaN or infinity")
+            }
             Self::BadIntrinsics => f.write_str("camera intrinsics are not a valid pinhole matrix"),
             Self::BadExtrinsics => {
                 f.write_str("camera extrinsics are not a finite rigid transform")

@@ -70,10 +70,13 @@ pub enum Noise<'n> {
 /// To - 1 + k` (the rows [`Actions::action`] starts at). The denoising loop holds those
 /// rows as [`PrefixMode`] says, so the rest of the chunk, and the anchors it is conditioned
 /// on, are planned from them; `action_pred` returns them (round-tripped through the action
-/// normalization).
+/// normalization). Optionally the previous chunk's plan for the rows after them
+/// ([`with_planned`](Self::with_planned)), which the new chunk is pulled towards with
+/// weights falling to zero, so it leaves the old plan smoothly (docs/SPEC.md section 5.1).
 #[derive(Clone, Copy, Debug)]
 pub struct Prefix<'p> {
     actions: &'p [f32],
+    planned: &'p [f32],
     mode: PrefixMode,
 }
 
@@ -81,17 +84,35 @@ impl<'p> Prefix<'p> {
     /// No committed actions: the plain inference, bit for bit.
     pub const NONE: Prefix<'static> = Prefix {
         actions: &[],
+        planned: &[],
         mode: PrefixMode::Replace,
     };
 
     #[must_use]
     pub const fn new(actions: &'p [f32], mode: PrefixMode) -> Self {
-        Prefix { actions, mode }
+        Prefix {
+            actions,
+            planned: &[],
+            mode,
+        }
+    }
+
+    /// The previous plan's actions for the rows after the committed ones, `[m, action_dim]`
+    /// in action units: row `j` pulls the sample towards it with weight `(m - j) / (m + 1)`
+    /// at each step's noise level.
+    #[must_use]
+    pub const fn with_planned(self, planned: &'p [f32]) -> Self {
+        Prefix { planned, ..self }
     }
 
     #[must_use]
     pub const fn actions(&self) -> &'p [f32] {
         self.actions
+    }
+
+    #[must_use]
+    pub const fn planned(&self) -> &'p [f32] {
+        self.planned
     }
 
     #[must_use]
@@ -108,15 +129,23 @@ impl<'p> Prefix<'p> {
     fn check(&self, config: &ModelConfig) -> Result<(), Error> {
         let action_dim = config.action_dim as usize;
         let max_rows = Self::max_rows(config);
-        let found = self.actions.len();
-        if !found.is_multiple_of(action_dim) || found > max_rows * action_dim {
+        let found = self.actions.len() + self.planned.len();
+        if !self.actions.len().is_multiple_of(action_dim)
+            || !self.planned.len().is_multiple_of(action_dim)
+            || found > max_rows * action_dim
+        {
             return Err(Error::PrefixSize {
                 max_rows,
                 action_dim,
                 found,
             });
         }
-        if self.actions.iter().any(|value| !value.is_finite()) {
+        if self
+            .actions
+            .iter()
+            .chain(self.planned)
+            .any(|value| !value.is_finite())
+        {
             return Err(Error::NonFinitePrefix);
         }
         Ok(())
@@ -381,9 +410,9 @@ impl<'w, 'a> Policy<'w, 'a> {
         }
         // The prefix's rows of the sample, and of the initial sample that noises them.
         let action_dim = config.action_dim as usize;
-        let prefix_rows =
-            (frames - 1) * action_dim..(frames - 1) * action_dim + prefix.actions.len();
-        let initial = &mut buffers.initial[..prefix.actions.len()];
+        let held = prefix.actions.len() + prefix.planned.len();
+        let prefix_rows = (frames - 1) * action_dim..(frames - 1) * action_dim + held;
+        let initial = &mut buffers.initial[..held];
         initial.copy_from_slice(&sample[prefix_rows.clone()]);
         let normalization = (normalizer.action_scale, normalizer.action_offset);
 
@@ -404,7 +433,7 @@ impl<'w, 'a> Policy<'w, 'a> {
             scheduler::hold_prefix(
                 prefix.mode,
                 PrefixLevel::Step(coefficients),
-                prefix.actions,
+                (prefix.actions, prefix.planned),
                 normalization,
                 initial,
                 &mut sample[prefix_rows.clone()],
@@ -480,7 +509,7 @@ impl<'w, 'a> Policy<'w, 'a> {
         scheduler::hold_prefix(
             prefix.mode,
             PrefixLevel::Final,
-            prefix.actions,
+            (prefix.actions, prefix.planned),
             normalization,
             initial,
             &mut sample[prefix_rows],

@@ -47,27 +47,48 @@ pub enum PrefixLevel<'c> {
     Final,
 }
 
-/// Writes `rows` (the prefix's rows of the sample) from `actions` (the same number of rows,
-/// in action units): normalized as `x = a scale + offset` per action dimension, then held
-/// as `mode` says at `level`. `initial` holds the initial sample's values of those rows.
+/// Writes `rows` (the prefix's rows of the sample: the committed ones, then the planned
+/// ones) from `committed` and `planned` (in action units), each normalized as `x = a scale +
+/// offset` per action dimension. The committed rows are held as `mode` says at `level`. A
+/// planned row `j` of `m` only pulls the sample towards it, at the step's noise level and
+/// with weight `(m - j) / (m + 1)`: `A <- w (sqrt(a_t) x + sqrt(1 - a_t) z) + (1 - w) A`,
+/// and is left to the model after the last step. `initial` holds the initial sample's values
+/// of those rows (`z`).
 pub fn hold_prefix(
     mode: PrefixMode,
     level: PrefixLevel<'_>,
-    actions: &[f32],
+    (committed, planned): (&[f32], &[f32]),
     (scale, offset): (&[f32], &[f32]),
     initial: &[f32],
     rows: &mut [f32],
 ) {
     let action_dim = scale.len();
-    for (index, ((value, &action), &noise)) in rows.iter_mut().zip(actions).zip(initial).enumerate()
-    {
+    let normalized = |action: f32, index: usize| {
         let dimension = index % action_dim;
-        let normalized = action * scale[dimension] + offset[dimension];
+        action * scale[dimension] + offset[dimension]
+    };
+    let (held, pulled) = rows.split_at_mut(committed.len());
+    let (held_noise, pulled_noise) = initial.split_at(committed.len());
+    for (index, ((value, &action), &noise)) in
+        held.iter_mut().zip(committed).zip(held_noise).enumerate()
+    {
+        let target = normalized(action, index);
         *value = match (mode, level) {
             (PrefixMode::Noised, PrefixLevel::Step(coefficients)) => {
-                coefficients[0] * normalized + coefficients[1] * noise
+                coefficients[0] * target + coefficients[1] * noise
             }
-            _ => normalized,
+            _ => target,
         };
+    }
+    let PrefixLevel::Step(coefficients) = level else {
+        return;
+    };
+    let planned_rows = planned.len() / action_dim;
+    for (index, ((value, &action), &noise)) in
+        pulled.iter_mut().zip(planned).zip(pulled_noise).enumerate()
+    {
+        let weight = (planned_rows - index / action_dim) as f32 / (planned_rows + 1) as f32;
+        let target = coefficients[0] * normalized(action, index) + coefficients[1] * noise;
+        *value = weight * target + (1.0 - weight) * *value;
     }
 }

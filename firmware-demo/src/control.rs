@@ -55,8 +55,15 @@ pub trait PolicyPort {
     /// Writes the chunk to execute, `[n_action_steps, action_dim]`, into `chunk`. Action `i` is
     /// for the newest observation's time plus `i dt`. `prefix`, `[k, action_dim]` (`k` may
     /// be 0), holds the actions that run at the chunk's first `k` times whatever it says (the
-    /// robot does not wait for it): a policy that can, continues them.
-    fn infer(&mut self, prefix: &[f32], chunk: &mut [f32]) -> Result<(), Self::Error>;
+    /// robot does not wait for it): a policy that can, continues them. `planned`, `[m,
+    /// action_dim]`, the queued plan for the `m` times after those, which the chunk replaces:
+    /// a policy that can, leaves it smoothly.
+    fn infer(
+        &mut self,
+        prefix: &[f32],
+        planned: &[f32],
+        chunk: &mut [f32],
+    ) -> Result<(), Self::Error>;
 }
 
 /// Measures real compute time.
@@ -360,10 +367,13 @@ impl<'f, P: PolicyPort, C: Stopwatch, W: Plant> ControlLoop<'f, P, C, W> {
             self.waiting_inference = None;
             self.encodes_ahead = 0;
             let length = self.timing.n_action_steps * self.dims.action_dim;
-            let rows = self.committed_prefix(observed_us, now + self.last_infer_us);
+            let (rows, planned) = self.committed_prefix(observed_us, now + self.last_infer_us);
             self.stats.prefix_rows += rows as u64;
-            let prefix = &self.prefix[..rows * self.dims.action_dim];
-            self.policy.infer(prefix, &mut self.chunk[..length])?;
+            let action_dim = self.dims.action_dim;
+            let (prefix, rest) = self.prefix.split_at(rows * action_dim);
+            let planned = &rest[..planned * action_dim];
+            self.policy
+                .infer(prefix, planned, &mut self.chunk[..length])?;
             Running::Infer { observed_us, late }
         } else {
             return Ok(());
@@ -380,19 +390,18 @@ impl<'f, P: PolicyPort, C: Stopwatch, W: Plant> ControlLoop<'f, P, C, W> {
         Ok(())
     }
 
-    /// Writes into `self.prefix` the actions that run at `observed_us + i dt` for the ticks
-    /// before `arrival_us` (at most `n_action_steps - 1`, so the chunk has one of its own),
-    /// from those executed and those queued, stopping at the first tick with none; returns
-    /// how many rows.
-    fn committed_prefix(&mut self, observed_us: u64, arrival_us: u64) -> usize {
+    /// Writes into `self.prefix` the actions that run at `observed_us + i dt`, one per tick
+    /// from those executed and those queued, stopping at the first tick with none and after
+    /// `n_action_steps` rows: first the committed ones, for the ticks before `arrival_us` (at
+    /// most `n_action_steps - 1`, so the chunk has one of its own), then the planned ones
+    /// the chunk will replace. Returns how many of each.
+    fn committed_prefix(&mut self, observed_us: u64, arrival_us: u64) -> (usize, usize) {
         let period = self.timing.control_period_us;
         let action_dim = self.dims.action_dim;
-        let mut rows = 0;
-        while rows + 1 < self.timing.n_action_steps {
+        let steps = self.timing.n_action_steps;
+        let (mut committed, mut rows) = (0, 0);
+        while rows < steps {
             let time = observed_us + rows as u64 * period;
-            if time >= arrival_us {
-                break;
-            }
             let found = self
                 .executed
                 .iter()
@@ -400,9 +409,12 @@ impl<'f, P: PolicyPort, C: Stopwatch, W: Plant> ControlLoop<'f, P, C, W> {
                 .find(|action| action.time_us == time);
             let Some(action) = found else { break };
             self.prefix[rows * action_dim..][..action_dim].copy_from_slice(action.values());
+            if time < arrival_us && committed == rows && rows + 1 < steps {
+                committed += 1;
+            }
             rows += 1;
         }
-        rows
+        (committed, rows - committed)
     }
 
     fn finish_job(&mut self, now: u64) {

@@ -18,6 +18,8 @@ pub struct EnginePolicy<'w, 'a> {
     /// How the loop's committed prefix is held; `None` ignores it (the hand-over then drops
     /// the chunk's own actions for those times as stale).
     prefix_mode: Option<PrefixMode>,
+    /// Whether the queued plan after the prefix pulls the chunk (with a prefix only).
+    planned: bool,
     seed: u64,
     inferences: u64,
     last_path: Option<AnchorPath>,
@@ -26,10 +28,16 @@ pub struct EnginePolicy<'w, 'a> {
 impl<'w, 'a> EnginePolicy<'w, 'a> {
     /// Inference `k` draws its initial noise from seed `seed + k`: fresh noise every time, as in
     /// training, yet a run is reproducible.
-    pub fn new(policy: Policy<'w, 'a>, seed: u64, prefix_mode: Option<PrefixMode>) -> Self {
+    pub fn new(
+        policy: Policy<'w, 'a>,
+        seed: u64,
+        prefix_mode: Option<PrefixMode>,
+        planned: bool,
+    ) -> Self {
         EnginePolicy {
             policy,
             prefix_mode,
+            planned,
             seed,
             inferences: 0,
             last_path: None,
@@ -52,11 +60,12 @@ impl PolicyPort for EnginePolicy<'_, '_> {
         self.policy.push_observation(image, state)
     }
 
-    fn infer(&mut self, prefix: &[f32], chunk: &mut [f32]) -> Result<(), Error> {
+    fn infer(&mut self, prefix: &[f32], planned: &[f32], chunk: &mut [f32]) -> Result<(), Error> {
         let seed = self.seed.wrapping_add(self.inferences);
         self.inferences += 1;
         let points = self.policy.config().anchor_count();
         let prefix = match self.prefix_mode {
+            Some(mode) if self.planned => Prefix::new(prefix, mode).with_planned(planned),
             Some(mode) => Prefix::new(prefix, mode),
             None => Prefix::NONE,
         };

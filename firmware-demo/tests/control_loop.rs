@@ -41,6 +41,8 @@ struct FakePolicy {
     seen: Vec<Vec<f32>>,
     /// The committed prefix each inference was given.
     prefixes: Vec<Vec<f32>>,
+    /// The planned actions after it.
+    planned: Vec<Vec<f32>>,
 }
 
 impl FakePolicy {
@@ -54,6 +56,7 @@ impl FakePolicy {
             pushes: Vec::new(),
             seen: Vec::new(),
             prefixes: Vec::new(),
+            planned: Vec::new(),
         }
     }
 }
@@ -75,7 +78,13 @@ impl PolicyPort for FakePolicy {
         Ok(())
     }
 
-    fn infer(&mut self, prefix: &[f32], chunk: &mut [f32]) -> Result<(), Self::Error> {
+    fn infer(
+        &mut self,
+        prefix: &[f32],
+        planned: &[f32],
+        chunk: &mut [f32],
+    ) -> Result<(), Self::Error> {
+        self.planned.push(planned.to_vec());
         let index = self.seen.len();
         self.prefixes.push(prefix.to_vec());
         let cost = self.infer_us[index.min(self.infer_us.len() - 1)];
@@ -123,6 +132,7 @@ struct Run {
     pushes: Vec<f32>,
     seen: Vec<Vec<f32>>,
     prefixes: Vec<Vec<f32>>,
+    planned: Vec<Vec<f32>>,
 }
 
 fn run(timing: Timing, encode_us: u64, infer_us: &[u64], until_us: u64) -> Run {
@@ -149,6 +159,7 @@ fn run(timing: Timing, encode_us: u64, infer_us: &[u64], until_us: u64) -> Run {
         pushes: policy.pushes.clone(),
         seen: policy.seen.clone(),
         prefixes: policy.prefixes.clone(),
+        planned: policy.planned.clone(),
     }
 }
 
@@ -181,10 +192,11 @@ fn assert_actions_run_at_their_time(run: &Run) {
 /// the previous inference's compute time says the chunk arrives by.
 #[test]
 fn the_committed_prefix_is_what_runs_before_the_chunk_arrives() {
-    // Inferences take 150 ms (1.5 ticks): from the second on, the prefix has the ticks at
-    // the observation and one after it (the observation tick's action comes from the old
-    // chunk, the next ends before 150 ms).
-    let run = run(timing(6), 1_000, &[150_000], 6_000_000);
+    // Inferences take 150 ms (1.5 ticks) every 4 ticks: from the second on, the prefix has
+    // the ticks at the observation and one after it (the observation tick's action comes
+    // from the old chunk, the next ends before 150 ms); the old chunk's last 2 actions are
+    // planned.
+    let run = run(timing(4), 1_000, &[150_000], 6_000_000);
     assert_actions_run_at_their_time(&run);
     assert!(
         run.prefixes[0].is_empty(),
@@ -210,7 +222,31 @@ fn the_committed_prefix_is_what_runs_before_the_chunk_arrives() {
             checked += 1;
         }
     }
-    assert!(checked >= 16, "{checked}");
+    assert!(checked >= 24, "{checked}");
+    // The planned rows are the old chunk's queued actions for the times after the prefix,
+    // which the new chunk replaces: all of the old chunk's that are left.
+    for (inference, planned) in run.planned.iter().enumerate().skip(1) {
+        let newest_frame = *run.seen[inference].last().unwrap();
+        let observed = (f64::from(newest_frame) * 1e6).round() as u64;
+        let rows = run.prefixes[inference].len() / ACTION_DIM;
+        assert_eq!(planned.len(), 2 * ACTION_DIM, "inference {inference}");
+        for (row, values) in planned.chunks_exact(ACTION_DIM).enumerate() {
+            let time = observed + (rows + row) as u64 * DT;
+            // Stamped for `time` by the chunk before: its observation plus the index.
+            let before = inference - 1;
+            let before_observed =
+                (f64::from(*run.seen[before].last().unwrap()) * 1e6).round() as u64;
+            assert_eq!(
+                values[0] as usize, before,
+                "inference {inference} row {row}"
+            );
+            assert_eq!(
+                before_observed + values[1] as u64 * DT,
+                time,
+                "inference {inference} row {row}"
+            );
+        }
+    }
     assert_eq!(
         run.stats.prefix_rows,
         run.prefixes

@@ -105,11 +105,11 @@ fn engine_port_returns_the_executed_rows_with_fresh_noise_each_time() {
     let mut arena = AlignedBytes::zeroed(ArenaPlan::new(&CONFIG).arena_bytes);
     let mut policy = Policy::new(&model, arena.as_mut_slice()).unwrap();
     policy.set_camera(calibration().camera().unwrap());
-    let mut port = EnginePolicy::new(policy, 10, None);
+    let mut port = EnginePolicy::new(policy, 10, None, false);
     port.push_observation(&image, &state).unwrap();
     let mut chunk = vec![0f32; chunk_len];
     for expected in expected {
-        port.infer(&[], &mut chunk).unwrap();
+        port.infer(&[], &[], &mut chunk).unwrap();
         assert_eq!([chunk[0].to_bits(), chunk.len() as u32], expected);
     }
     let path = port.last_path().unwrap();
@@ -156,7 +156,7 @@ fn run_loop(seconds: u64) -> (firmware_demo::LoopStats, [f32; 3]) {
     let mut control = ControlLoop::new(
         timing,
         dims,
-        EnginePolicy::new(policy, 5, None),
+        EnginePolicy::new(policy, 5, None, false),
         stopwatch,
         robot,
         &mut frames,

@@ -126,6 +126,7 @@ class Policy:
         full: Literal[False] = False,
         prefix: npt.ArrayLike | None = None,
         prefix_mode: _PrefixMode = "replace",
+        planned: npt.ArrayLike | None = None,
     ) -> npt.NDArray[np.float32]: ...
     @overload
     def infer(
@@ -136,6 +137,7 @@ class Policy:
         full: Literal[True],
         prefix: npt.ArrayLike | None = None,
         prefix_mode: _PrefixMode = "replace",
+        planned: npt.ArrayLike | None = None,
     ) -> FullInference: ...
     @overload
     def infer(
@@ -145,6 +147,7 @@ class Policy:
         full: bool = False,
         prefix: npt.ArrayLike | None = None,
         prefix_mode: _PrefixMode = "replace",
+        planned: npt.ArrayLike | None = None,
     ) -> npt.NDArray[np.float32] | FullInference:
         """Runs the denoising loop (`num_inference_steps` DDIM steps) on the observations
         pushed.
@@ -167,7 +170,10 @@ class Policy:
         will execute before this chunk takes over, for rows `n_obs_steps - 1 ..` of the
         chunk; the denoising holds them ("replace": Diffusion Policy's inpainting;
         "noised": at each step's noise level) so the rest of the chunk continues them.
-        More than `horizon - n_obs_steps + 1` rows, or NaN/inf, raise `EngineError`.
+        `planned`, `[m, action_dim]`: the previous chunk's plan for the rows after the
+        prefix, which the chunk is pulled towards with weights falling from `m / (m + 1)`
+        to `1 / (m + 1)`. More than `horizon - n_obs_steps + 1` rows in all, or NaN/inf,
+        raise `EngineError`.
         """
     def reset(self) -> None:
         """Forgets the observation history and restarts the seed counter (see `infer`);

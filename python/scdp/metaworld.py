@@ -307,13 +307,15 @@ class TorchRuntime:
         frames = [self.frames[0]] * (self.cfg["n_obs_steps"] - len(self.frames)) + self.frames
         return np.stack([f[0] for f in frames]), np.stack([f[1] for f in frames])
 
-    def infer(self, noise, prefix=None, prefix_mode="replace"):
+    def infer(self, noise, prefix=None, prefix_mode="replace", planned=None):
         torch = self.torch
         images, state = self.history()
         held = None if prefix is None or len(prefix) == 0 else torch.as_tensor(prefix)[None]
+        pulled = None if planned is None or len(planned) == 0 else torch.as_tensor(planned)[None]
         action_pred, anchors = self.policy.predict(
             torch.as_tensor(images)[None], torch.as_tensor(state)[None], *self.camera,
             torch.as_tensor(noise)[None], record_anchors=True, prefix=held, prefix_mode=prefix_mode,
+            planned=pulled,
         )
         return action_pred[0].numpy(), anchors[:, 0].numpy()
 
@@ -339,8 +341,9 @@ class EngineRuntime:
     def push(self, image, state):
         self.policy.push_observation(image, state)
 
-    def infer(self, noise, prefix=None, prefix_mode="replace"):
-        result = self.policy.infer(noise=noise, full=True, prefix=prefix, prefix_mode=prefix_mode)
+    def infer(self, noise, prefix=None, prefix_mode="replace", planned=None):
+        result = self.policy.infer(noise=noise, full=True, prefix=prefix, prefix_mode=prefix_mode,
+                                   planned=planned)
         return result["action_pred"], result["anchors_uv"]
 
 
@@ -369,14 +372,16 @@ def episode_noise(seed: int, chunk: int, cfg: dict) -> np.ndarray:
 SEAM_WINDOW = 4
 
 
-def run_episode(scene, runtime, cfg, seed, record=None, frames=None, latency=0, prefix_mode=None):
+def run_episode(scene, runtime, cfg, seed, record=None, frames=None, latency=0, prefix_mode=None,
+                planned=False):
     """Diffusion Policy's receding horizon with an inference that takes `latency` control
     steps. The first chunk is computed while the arm waits; it executes the n_action_steps
     actions from "now" (rows To-1 ..). Every later chunk is started from the observation
     taken when `latency` actions of the current one remain, and those actions keep running
     while it is computed: its rows To-1 .. To-1+latency are then in the past. They are
     dropped (`prefix_mode` None, the firmware demo's rule) or were given to the inference as
-    its committed prefix (`prefix_mode` "replace" or "noised"); the chunk executes the
+    its committed prefix (`prefix_mode` "replace" or "noised"), with `planned` also the old
+    chunk's rows after them, which the new one is pulled towards; the chunk executes the
     n_action_steps rows after them. With latency 0 this is the loop where the simulation
     waits for the policy. Only the frames the policy sees are rendered (the last To before
     each inference). `record` (a list, torch runtime only) receives each inference's inputs
@@ -391,7 +396,7 @@ def run_episode(scene, runtime, cfg, seed, record=None, frames=None, latency=0, 
     if first + latency + count > cfg["horizon"]:
         raise SystemExit(f"latency {latency} leaves fewer than n_action_steps rows of the horizon")
     steps, chunk, solved, latencies, seams = 0, 0, False, [], []
-    plan, anchors, last = [], None, None
+    plan, rest, anchors, last = [], [], None, None
     image, state = scene.render(), scene.state()
     while steps < scene.max_steps and not solved:
         # The observation: now, with `latency` actions of the plan still to run (none for the
@@ -401,13 +406,14 @@ def run_episode(scene, runtime, cfg, seed, record=None, frames=None, latency=0, 
         started = time.perf_counter()
         runtime.push(image, state)
         held = committed if prefix_mode else None
-        action_pred, new_anchors = runtime.infer(noise, held, prefix_mode or "replace")
+        pulled = np.array(rest, np.float32).reshape(-1, cfg["action_dim"]) if prefix_mode and planned and chunk else None
+        action_pred, new_anchors = runtime.infer(noise, held, prefix_mode or "replace", pulled)
         latencies.append((time.perf_counter() - started) * 1e3)
         if record is not None:
             images, states = runtime.history()
             record.append({"images": images, "state": states, "noise": noise, "camera_k": camera_k,
                            "camera_t": camera_t, "action_pred": action_pred, "seed": seed, "chunk": chunk,
-                           "prefix": held, "prefix_mode": prefix_mode})
+                           "prefix": held, "prefix_mode": prefix_mode, "planned": pulled})
         # While it computes, the old plan's last `latency` actions run.
         skip = len(committed)
         for action in committed:
@@ -421,6 +427,7 @@ def run_episode(scene, runtime, cfg, seed, record=None, frames=None, latency=0, 
         if solved or steps >= scene.max_steps:
             break
         plan = list(action_pred[first + skip : first + skip + count])
+        rest = list(action_pred[first + skip + count :])
         anchors = new_anchors
         if last is not None:
             seams.append((last, np.array(plan[: SEAM_WINDOW + 1])))
@@ -478,7 +485,7 @@ def measured_latency_steps(runtime, cfg, scene, control_hz, seed):
 
 
 def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backend="auto", gif=None,
-             agreement=False, record_count=0, latency=0, prefix_mode=None, control_hz=None):
+             agreement=False, record_count=0, latency=0, prefix_mode=None, control_hz=None, planned=False):
     cfg = load_config(model_dir)
     demo_seeds = set()
     if (model_dir / DEMOS).exists():
@@ -501,7 +508,8 @@ def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backe
     for number, seed in enumerate(seeds):
         frames = [] if gif is not None and number == 0 else None
         solved, steps, times, episode_seams = run_episode(
-            scene, runtime, cfg, seed, record=record, frames=frames, latency=latency, prefix_mode=prefix_mode)
+            scene, runtime, cfg, seed, record=record, frames=frames, latency=latency, prefix_mode=prefix_mode,
+            planned=planned)
         seams.extend(episode_seams)
         if frames is not None:
             write_rollout_gif(gif, frames)
@@ -516,7 +524,8 @@ def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backe
         "first_seed": first_seed, "mean_steps": float(np.mean(steps_taken)),
         "infer_ms_p50": float(np.median(latencies)),
         "backend": getattr(getattr(runtime, "policy", None), "backend", "torch"),
-        "latency_steps": latency, "prefix": prefix_mode, "seams": seam_figures(seams),
+        "latency_steps": latency, "prefix": prefix_mode, "planned": bool(prefix_mode and planned),
+        "seams": seam_figures(seams),
     }
     if control_hz is not None:
         result["control_hz"] = control_hz
@@ -541,7 +550,8 @@ def agreement_with(runtime, record, action_scale):
         runtime.reset(entry["camera_k"], entry["camera_t"])
         for image, state in zip(entry["images"], entry["state"]):
             runtime.push(image, state)
-        action_pred, _ = runtime.infer(entry["noise"], entry.get("prefix"), entry.get("prefix_mode") or "replace")
+        action_pred, _ = runtime.infer(entry["noise"], entry.get("prefix"), entry.get("prefix_mode") or "replace",
+                                       entry.get("planned"))
         errors.append(np.abs(action_pred - entry["action_pred"]) * action_scale)
     errors = np.stack(errors)
     return {"inferences": len(record), "max": float(errors.max()), "mean": float(errors.mean()),
@@ -646,6 +656,9 @@ def main(argv=None) -> None:
     p.add_argument("--prefix", choices=("replace", "noised"),
                    help="give the actions run during the inference as the chunk's committed prefix "
                         "(default: drop the new chunk's actions whose time has passed)")
+    p.add_argument("--planned", action="store_true",
+                   help="with --prefix: also give the old chunk's plan after the prefix, which the "
+                        "new chunk is pulled towards")
     args = parser.parse_args(argv)
     if args.command == "collect":
         collect(args.task, args.model_dir, args.episodes, args.first_seed)
@@ -658,7 +671,7 @@ def main(argv=None) -> None:
     elif args.command == "eval":
         evaluate(args.task, args.model_dir, args.runtime, args.episodes, args.first_seed, args.threads,
                  args.backend, args.gif, args.agreement, args.record, args.latency_steps, args.prefix,
-                 args.control_hz)
+                 args.control_hz, args.planned)
 
 
 if __name__ == "__main__":

@@ -313,22 +313,31 @@ class SCDPPolicy(nn.Module):
 
     @torch.no_grad()
     def predict(self, images, state, camera_k, camera_t, noise, record_anchors=False, prefix=None,
-                prefix_mode="replace"):
+                prefix_mode="replace", planned=None):
         """One chunk per batch entry; noise [B, horizon, A] is the initial sample.
         Returns action_pred [B, horizon, A] (raw units) and, when asked, the anchors of
         each step [steps, B, s+1, 2] (NaN where invalid). `prefix` [B, k, A] (raw units):
         actions committed for rows To-1.., held as `prefix_mode` says ("replace": Diffusion
-        Policy's inpainting; "noised": at each step's noise level; docs/SPEC.md 5.1)."""
+        Policy's inpainting; "noised": at each step's noise level; docs/SPEC.md 5.1); `planned`
+        [B, m, A] (raw units): the old plan for the rows after them, which the sample is pulled
+        towards with weights (m - j) / (m + 1) at each step's noise level."""
         cfg = self.cfg
         features = self.features(images)
         steps = cfg["num_inference_steps"]
         ratio = cfg["num_train_timesteps"] // steps
         sample = noise.float()
         first = cfg["n_obs_steps"] - 1
-        rows = slice(first, first + (0 if prefix is None else prefix.shape[1]))
+        k = 0 if prefix is None else prefix.shape[1]
+        m = 0 if planned is None else planned.shape[1]
+        rows = slice(first, first + k)
+        pulled = slice(first + k, first + k + m)
         if prefix is not None:
             held = self.normalizer.normalize("action", prefix.float())
             initial = sample[:, rows].clone()
+        if m:
+            guide = self.normalizer.normalize("action", planned.float())
+            guide_noise = sample[:, pulled].clone()
+            weight = torch.tensor([(m - j) / (m + 1) for j in range(m)])[None, :, None]
         anchors = []
         for t in range(ratio * (steps - 1), -1, -ratio):
             if prefix is not None:
@@ -338,6 +347,11 @@ class SCDPPolicy(nn.Module):
                     sample[:, rows] = a_t.sqrt() * held + (1 - a_t).sqrt() * initial
                 else:
                     sample[:, rows] = held
+            if m:
+                a_t = self.alphas_cumprod[t]
+                target = a_t.sqrt() * guide + (1 - a_t).sqrt() * guide_noise
+                sample = sample.clone()
+                sample[:, pulled] = weight * target + (1 - weight) * sample[:, pulled]
             cond, uv, valid = self.global_condition(features, sample, state, camera_k, camera_t)
             if record_anchors:
                 anchors.append(torch.where(valid[..., None], uv, torch.full_like(uv, float("nan"))))

@@ -475,8 +475,11 @@ impl PyPolicy {
     /// will execute before this chunk takes over, for rows `n_obs_steps - 1 ..` of the
     /// chunk; the denoising holds them (`prefix_mode` "replace", Diffusion Policy's
     /// inpainting, or "noised", at each step's noise level) so the rest continues them.
-    /// More rows than `horizon - n_obs_steps + 1`, or NaN/inf, raise `EngineError`.
-    #[pyo3(signature = (seed = None, noise = None, full = false, prefix = None, prefix_mode = "replace"))]
+    /// `planned`, `[m, action_dim]`: the previous chunk's plan for the rows after the prefix;
+    /// the chunk is pulled towards it with weights falling from `m / (m + 1)` to
+    /// `1 / (m + 1)`, so it leaves the old plan smoothly. More rows than `horizon -
+    /// n_obs_steps + 1` in all, or NaN/inf, raise `EngineError`.
+    #[pyo3(signature = (seed = None, noise = None, full = false, prefix = None, prefix_mode = "replace", planned = None))]
     #[allow(clippy::too_many_arguments)]
     fn infer<'py>(
         &mut self,
@@ -486,6 +489,7 @@ impl PyPolicy {
         full: bool,
         prefix: Option<&Bound<'py, PyAny>>,
         prefix_mode: &str,
+        planned: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyAny>> {
         let config = *self.policy.config();
         let (horizon, action_dim) = (config.horizon as usize, config.action_dim as usize);
@@ -498,19 +502,21 @@ impl PyPolicy {
                 )));
             }
         };
-        let prefix = match prefix {
-            None => Vec::new(),
-            Some(prefix) => {
-                let (shape, values) = float_values(prefix, "prefix")?;
-                if shape.len() != 2 || shape[1] != action_dim {
-                    return Err(PyValueError::new_err(format!(
-                        "prefix must be 2-D, [k, action_dim] = (k, {action_dim}); got shape {}",
-                        shape_text(&shape)
-                    )));
-                }
-                values
+        let rows = |array: Option<&Bound<'py, PyAny>>, name: &str| -> PyResult<Vec<f32>> {
+            let Some(array) = array else {
+                return Ok(Vec::new());
+            };
+            let (shape, values) = float_values(array, name)?;
+            if shape.len() != 2 || shape[1] != action_dim {
+                return Err(PyValueError::new_err(format!(
+                    "{name} must be 2-D, [k, action_dim] = (k, {action_dim}); got shape {}",
+                    shape_text(&shape)
+                )));
             }
+            Ok(values)
         };
+        let prefix = rows(prefix, "prefix")?;
+        let planned = rows(planned, "planned")?;
         let counted = seed.is_none() && noise.is_none();
         let mut given = Vec::new();
         let seed = match (seed, noise) {
@@ -545,7 +551,8 @@ impl PyPolicy {
                 None => Noise::Given(&given),
             };
             let start = Instant::now();
-            let actions = policy.infer_with(noise, Prefix::new(&prefix, mode))?;
+            let held = Prefix::new(&prefix, mode).with_planned(&planned);
+            let actions = policy.infer_with(noise, held)?;
             let milliseconds = milliseconds(start);
             Ok(Inference {
                 action: actions.action().to_vec(),

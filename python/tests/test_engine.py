@@ -136,7 +136,8 @@ def test_golden_fixture(path, backend, models, weights):
     policy = ready_policy(models[path], case, backend)
     assert policy.backend == backend
     prefix_mode = fixture_metadata(path).get("prefix_mode", "replace")
-    result = policy.infer(noise=case["noise"], full=True, prefix=case.get("prefix"), prefix_mode=prefix_mode)
+    result = policy.infer(noise=case["noise"], full=True, prefix=case.get("prefix"), prefix_mode=prefix_mode,
+                          planned=case.get("planned"))
 
     truth = case["ref64.action_pred"]
     action_error = float((np.abs(result["action_pred"] - truth) * scale).max())
@@ -157,8 +158,9 @@ def test_golden_fixture(path, backend, models, weights):
 
 
 def test_fixtures_are_there():
-    assert len(FIXTURES) >= 12, FIXTURES
-    assert sum("prefix" in load_file(str(path)) for path in FIXTURES) >= 6
+    assert len(FIXTURES) >= 15, FIXTURES
+    assert sum("prefix" in load_file(str(path)) for path in FIXTURES) >= 9
+    assert sum("planned" in load_file(str(path)) for path in FIXTURES) >= 3
 
 
 # --- (2) errors -----------------------------------------------------------------------------
@@ -348,12 +350,16 @@ def test_bad_prefixes(tiny_model, tiny):
     with pytest.raises(ValueError, match=r"prefix must be 2-D, \[k, action_dim\] = \(k, 4\); got shape \(8,\)"):
         policy.infer(seed=1, prefix=np.zeros(8))
     # tiny: horizon 8, To 2, so at most 7 rows.
-    with engine_error("prefix has 32 values; expected whole rows of 4, at most 7 rows"):
+    with engine_error("prefix has 32 values; expected whole rows of 4, at most 7 rows with the planned ones"):
         policy.infer(seed=1, prefix=np.zeros((8, 4)))
+    with engine_error("prefix has 32 values; expected whole rows of 4, at most 7 rows with the planned ones"):
+        policy.infer(seed=1, prefix=np.zeros((5, 4)), planned=np.zeros((3, 4)))
     bad = np.zeros((2, 4))
     bad[1, 2] = np.inf
-    with engine_error("prefix contains NaN or infinity"):
+    with engine_error("prefix or planned actions contain NaN or infinity"):
         policy.infer(seed=1, prefix=bad, prefix_mode="noised")
+    with engine_error("prefix or planned actions contain NaN or infinity"):
+        policy.infer(seed=1, prefix=np.zeros((1, 4)), planned=bad)
 
 
 @pytest.mark.parametrize("mode", ["replace", "noised"])

@@ -61,13 +61,17 @@ CASE_DESCRIPTIONS = {
              "Across the denoising steps some anchors project outside the image, at least one is behind "
              "the camera (X.z <= z_min, invalid: zero contribution, NaN in anchors_uv) and others are valid."),
 }
-PREFIX_CASES = ("prefix-replace", "prefix-noised")
+PREFIX_CASES = ("prefix-replace", "prefix-noised", "prefix-planned")
 PREFIX_ROWS = 3  # committed actions: the latency of 3 control steps
 PREFIX_SHIFT = 2  # taken from the plain chunk's rows To-1+2.., as if planned two steps earlier
+PLANNED_ROWS = 3  # prefix-planned: the plain chunk's next rows, the old plan the new one leaves
 for _mode in ("replace", "noised"):
     CASE_DESCRIPTIONS[f"prefix-{_mode}"] = (
         f"As basic, with {PREFIX_ROWS} committed actions for rows To-1.. (docs/SPEC.md section 5.1, mode "
         f"{_mode}): the float64 plain chunk's rows To-1+{PREFIX_SHIFT}.. of the same inputs, rounded to float32.")
+CASE_DESCRIPTIONS["prefix-planned"] = (
+    CASE_DESCRIPTIONS["prefix-replace"] + f" Then {PLANNED_ROWS} planned actions, the plain chunk's next rows, "
+    "which the sample is pulled towards.")
 
 
 # ------------------------------------------------------------------------------------ io
@@ -227,7 +231,9 @@ def generate_case(cfg, cfg_text, name, case, p32, p64, wsha, outdir, log) -> dic
             plain = numpy_out(p64.predict(inp, feats=feats_cache[key]))["action_pred"]
             first = cfg["n_obs_steps"] - 1 + PREFIX_SHIFT
             inp.prefix = plain[first:first + PREFIX_ROWS].astype(np.float32)
-            inp.prefix_mode = case.removeprefix("prefix-")
+            inp.prefix_mode = "noised" if case == "prefix-noised" else "replace"
+            if case == "prefix-planned":
+                inp.planned = plain[first + PREFIX_ROWS:first + PREFIX_ROWS + PLANNED_ROWS].astype(np.float32)
         o64 = numpy_out(p64.predict(inp, feats=feats_cache[key]))
         ok, why, stats = case_properties(cfg, "edge" if case == "edge" else "basic", o64)
         if ok:
@@ -273,6 +279,8 @@ def generate_case(cfg, cfg_text, name, case, p32, p64, wsha, outdir, log) -> dic
     if inp.prefix is not None:
         tensors["prefix"] = inp.prefix
         extra_meta["prefix_mode"] = inp.prefix_mode
+    if inp.planned is not None:
+        tensors["planned"] = inp.planned
     for n in OUT_NAMES:
         tensors[f"ref64.{n}"] = o64[n].astype(np.float64)
         tensors[f"ref32.{n}"] = o32[n].astype(np.float32)

@@ -326,19 +326,26 @@ def ddim_schedule(cfg: dict) -> tuple[np.ndarray, list[int], int]:
     return ac, timesteps, ratio
 
 
-def hold_prefix(A: torch.Tensor, prefix_norm: torch.Tensor, z: torch.Tensor, first: int, mode: str,
-                a_t: float | None) -> torch.Tensor:
+def hold_prefix(A: torch.Tensor, prefix_norm: torch.Tensor, planned_norm: torch.Tensor, z: torch.Tensor,
+                first: int, mode: str, a_t: float | None) -> torch.Tensor:
     """docs/SPEC.md section 5.1: rows first..first+k of A set to the normalized prefix, or (mode
-    "noised", before a step at level a_t) to sqrt(a_t) prefix + sqrt(1 - a_t) z."""
-    k = prefix_norm.shape[0]
-    if k == 0:
+    "noised", before a step at level a_t) to sqrt(a_t) prefix + sqrt(1 - a_t) z; before a step,
+    the m planned rows after them pulled towards sqrt(a_t) planned + sqrt(1 - a_t) z with
+    weights (m - j) / (m + 1)."""
+    k, m = prefix_norm.shape[0], planned_norm.shape[0]
+    if k + m == 0:
         return A
     A = A.clone()
-    if mode == "noised" and a_t is not None:
+    if a_t is not None:
         a = torch.tensor(a_t, dtype=A.dtype)
-        A[first:first + k] = torch.sqrt(a) * prefix_norm + torch.sqrt(1 - a) * z
+    if mode == "noised" and a_t is not None:
+        A[first:first + k] = torch.sqrt(a) * prefix_norm + torch.sqrt(1 - a) * z[:k]
     else:
         A[first:first + k] = prefix_norm
+    if m and a_t is not None:
+        w = torch.tensor([(m - j) / (m + 1) for j in range(m)], dtype=A.dtype)[:, None]
+        target = torch.sqrt(a) * planned_norm + torch.sqrt(1 - a) * z[k:]
+        A[first + k:first + k + m] = w * target + (1 - w) * A[first + k:first + k + m]
     return A
 
 
@@ -365,6 +372,7 @@ class RunInputs:
     camera_t: np.ndarray  # f32 [4, 4]
     prefix: np.ndarray | None = None  # f32 [k, action_dim], committed actions for rows To-1..
     prefix_mode: str = "replace"  # docs/SPEC.md section 5.1: "replace" or "noised"
+    planned: np.ndarray | None = None  # f32 [m, action_dim], the old plan for the rows after the prefix
 
 
 class SCDPPolicy(nn.Module):
@@ -486,11 +494,13 @@ class SCDPPolicy(nn.Module):
         A = noise.clone()
         nd = self.normalizer.params_dict["action"]
         prefix = np.zeros((0, cfg["action_dim"]), np.float32) if inp.prefix is None else inp.prefix
+        planned = np.zeros((0, cfg["action_dim"]), np.float32) if inp.planned is None else inp.planned
         prefix_norm = torch.as_tensor(prefix).to(dt) * nd["scale"] + nd["offset"]
-        z = noise[To - 1: To - 1 + prefix.shape[0]].clone()
+        planned_norm = torch.as_tensor(planned).to(dt) * nd["scale"] + nd["offset"]
+        z = noise[To - 1: To - 1 + prefix.shape[0] + planned.shape[0]].clone()
         rec = {k: [] for k in ("anchors_uv", "anchors_cam", "valid", "context", "eps", "sample", "x0_raw")}
         for t in timesteps:
-            A = hold_prefix(A, prefix_norm, z, To - 1, inp.prefix_mode, float(ac[t]))
+            A = hold_prefix(A, prefix_norm, planned_norm, z, To - 1, inp.prefix_mode, float(ac[t]))
             X, valid = self.anchors(A, state, R, tvec)
             uv = self.project(X, valid, K)
             ctx = self.context(feats, uv, valid)
@@ -500,7 +510,7 @@ class SCDPPolicy(nn.Module):
             for k, v in (("anchors_uv", uv), ("anchors_cam", X), ("valid", valid), ("context", ctx),
                          ("eps", eps), ("sample", A), ("x0_raw", x0_raw)):
                 rec[k].append(v)
-        A = hold_prefix(A, prefix_norm, z, To - 1, inp.prefix_mode, None)
+        A = hold_prefix(A, prefix_norm, planned_norm, z, To - 1, inp.prefix_mode, None)
         action_pred = (A - nd["offset"]) / nd["scale"]
         out = {k: torch.stack(v) for k, v in rec.items()}
         out["action_pred"] = action_pred

@@ -108,8 +108,17 @@ impl Fixture {
 
     /// The committed actions of a prefix fixture, `[k, action_dim]` (none in the others).
     pub fn prefix_actions(&self) -> Vec<f32> {
+        self.optional_f32s("prefix")
+    }
+
+    /// The planned actions after the prefix, `[m, action_dim]` (none where not given).
+    pub fn planned_actions(&self) -> Vec<f32> {
+        self.optional_f32s("planned")
+    }
+
+    fn optional_f32s(&self, name: &str) -> Vec<f32> {
         self.arrays
-            .get("prefix")
+            .get(name)
             .map(|array| array.values.iter().map(|&v| v as f32).collect())
             .unwrap_or_default()
     }
@@ -330,7 +339,8 @@ pub fn run_engine_with(weights: &[u8], fixture: &Fixture, backend: Backend) -> R
         .collect();
     let noise = fixture.f32s("noise");
     let prefix_actions = fixture.prefix_actions();
-    let prefix = Prefix::new(&prefix_actions, fixture.prefix_mode);
+    let planned_actions = fixture.planned_actions();
+    let prefix = Prefix::new(&prefix_actions, fixture.prefix_mode).with_planned(&planned_actions);
     let mut recorded = Recorded::default();
     let actions = policy.infer_observed(Noise::Given(&noise), prefix, &mut recorded)?;
     Ok(EngineRun {

@@ -135,6 +135,41 @@ fn a_prefix_comes_back_in_its_rows_and_steers_the_rest() {
         }
         assert_ne!(bits(&chunks[0]), bits(&chunks[1]), "the modes differ");
     }
+    // The old plan after the prefix pulls the rows after it and is not written over them.
+    let prefix = committed(&plain, &config, 3);
+    let planned: Vec<f32> = committed(&plain, &config, 6)[3 * action_dim..]
+        .iter()
+        .map(|v| v + 0.2)
+        .collect();
+    let held = policy
+        .infer_with(Noise::Seed(4), Prefix::new(&prefix, PrefixMode::Replace))
+        .unwrap()
+        .action_pred()
+        .to_vec();
+    let pulled = policy
+        .infer_with(
+            Noise::Seed(4),
+            Prefix::new(&prefix, PrefixMode::Replace).with_planned(&planned),
+        )
+        .unwrap()
+        .action_pred()
+        .to_vec();
+    let after = first + prefix.len();
+    assert_eq!(bits(&pulled[first..after]), bits(&held[first..after]));
+    let distance = |chunk: &[f32]| -> f32 {
+        chunk[after..after + planned.len()]
+            .iter()
+            .zip(&planned)
+            .map(|(a, b)| (a - b).abs())
+            .sum()
+    };
+    assert!(
+        distance(&pulled) < distance(&held),
+        "the planned rows pull: {} vs {}",
+        distance(&pulled),
+        distance(&held)
+    );
+    assert_ne!(bits(&pulled[after..after + planned.len()]), bits(&planned));
 }
 
 /// The int8 convolutions are exact on every backend and the SIMD backends share their f32
@@ -202,6 +237,22 @@ fn bad_prefixes_are_errors() {
             let result = policy.infer_with(Noise::Seed(1), Prefix::new(&values, mode));
             assert_eq!(result.err(), Some(expected), "{values:?} {mode:?}");
         }
+    }
+    // The planned rows count with the committed ones and are checked the same way.
+    let full = vec![0.1; max_rows * action_dim];
+    let one = vec![0.1; action_dim];
+    for (committed, planned, expected) in [
+        (&full[..], &one[..], size_error((max_rows + 1) * action_dim)),
+        (&one[..], &one[..1], size_error(action_dim + 1)),
+        (
+            &one[..],
+            &[0.0, f32::NAN, 0.0, 0.0][..],
+            Error::NonFinitePrefix,
+        ),
+    ] {
+        let prefix = Prefix::new(committed, PrefixMode::Replace).with_planned(planned);
+        let result = policy.infer_with(Noise::Seed(1), prefix);
+        assert_eq!(result.err(), Some(expected), "{committed:?} {planned:?}");
     }
     // The longest prefix is accepted.
     let longest = vec![0.01; max_rows * action_dim];

@@ -58,6 +58,10 @@ struct Cli {
     /// (the chunk's own actions for those ticks are dropped as stale).
     #[arg(long, default_value = "replace", value_name = "MODE")]
     prefix: PrefixArg,
+    /// With a prefix: do not give the queued plan after it, which the new chunk is
+    /// otherwise pulled towards.
+    #[arg(long)]
+    no_planned: bool,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -204,7 +208,7 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
     let mut control = ControlLoop::new(
         timing,
         dims,
-        EnginePolicy::new(policy, cli.seed, cli.prefix.mode()),
+        EnginePolicy::new(policy, cli.seed, cli.prefix.mode(), !cli.no_planned),
         WallClock(wall),
         robot,
         &mut frames,

@@ -227,7 +227,7 @@ fn checks_and_loop(out: &mut sys::Output) -> Result<(), Failure> {
     let mut control = ControlLoop::new(
         timing,
         dims,
-        EnginePolicy::new(policy, SEED, Some(PrefixMode::Replace)),
+        EnginePolicy::new(policy, SEED, Some(PrefixMode::Replace), true),
         Monotonic,
         robot,
         frames,
