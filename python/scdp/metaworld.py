@@ -504,7 +504,7 @@ def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backe
     if control_hz is not None:
         latency, measured_ms = measured_latency_steps(runtime, cfg, scene, control_hz, seeds[0])
         print(f"one inference {measured_ms:.1f} ms: {latency} steps at {control_hz:g} Hz", file=sys.stderr)
-    successes, steps_taken, latencies, seams = 0, [], [], []
+    successes, steps_taken, latencies, seams, failed = 0, [], [], [], []
     for number, seed in enumerate(seeds):
         frames = [] if gif is not None and number == 0 else None
         solved, steps, times, episode_seams = run_episode(
@@ -514,6 +514,8 @@ def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backe
         if frames is not None:
             write_rollout_gif(gif, frames)
         successes += solved
+        if not solved:
+            failed.append(seed)
         steps_taken.append(steps)
         latencies.extend(times)
         print(f"seed {seed}: {'success' if solved else 'failure'} after {steps} steps", file=sys.stderr)
@@ -524,6 +526,7 @@ def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backe
         "first_seed": first_seed, "mean_steps": float(np.mean(steps_taken)),
         "infer_ms_p50": float(np.median(latencies)),
         "backend": getattr(getattr(runtime, "policy", None), "backend", "torch"),
+        "failed_seeds": failed,
         "latency_steps": latency, "prefix": prefix_mode, "planned": bool(prefix_mode and planned),
         "seams": seam_figures(seams),
     }
@@ -584,6 +587,51 @@ def wilson_interval(successes: int, trials: int, z: float = 1.959963984540054):
     centre = (p + z * z / (2 * trials)) / (1 + z * z / trials)
     half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / (1 + z * z / trials)
     return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def difference_interval(successes_a: int, trials_a: int, successes_b: int, trials_b: int):
+    """Newcombe's hybrid score interval (95%) of the difference a - b of two success rates,
+    taken as independent (wider than a paired interval on the same seeds)."""
+    pa, pb = successes_a / trials_a, successes_b / trials_b
+    la, ua = wilson_interval(successes_a, trials_a)
+    lb, ub = wilson_interval(successes_b, trials_b)
+    difference = pa - pb
+    return (difference - math.sqrt((pa - la) ** 2 + (ub - pb) ** 2),
+            difference + math.sqrt((ua - pa) ** 2 + (pb - lb) ** 2))
+
+
+def latency_table(paths) -> str:
+    """A Markdown table of `eval` results (JSON lines) with latency: per task and latency,
+    each hand-over rule's success, its difference to dropping the stale actions at the same
+    latency (Newcombe's interval), and the seam figures."""
+    results = []
+    for path in paths:
+        for line in Path(path).read_text().splitlines():
+            if line.strip():
+                results.append(json.loads(line))
+    def rule(r):
+        if not r.get("prefix"):
+            return "drop"
+        return f"prefix {r['prefix']}" + (" + planned" if r.get("planned") else "")
+    order = ["drop", "prefix replace", "prefix noised", "prefix replace + planned", "prefix noised + planned"]
+    results.sort(key=lambda r: (r["task"], r["latency_steps"], order.index(rule(r))))
+    lines = ["| task | D | hand-over | success (95%) | minus drop (95%) | seam jump mean / p95 | "
+             "largest early step mean | mean steps |",
+             "|---|---:|---|---|---|---|---|---:|"]
+    for r in results:
+        drop = next((d for d in results if d["task"] == r["task"] and d["latency_steps"] == r["latency_steps"]
+                     and rule(d) == "drop"), None)
+        low, high = r["success_rate_95"]
+        versus = ""
+        if drop is not None and drop is not r:
+            a, b = difference_interval(r["successes"], r["episodes"], drop["successes"], drop["episodes"])
+            versus = f"{r['success_rate'] - drop['success_rate']:+.2f} ({a:+.3f} .. {b:+.3f})"
+        seams = r["seams"]
+        lines.append(
+            f"| {r['task']} | {r['latency_steps']} | {rule(r)} | {r['successes']}/{r['episodes']} "
+            f"({low:.3f} - {high:.3f}) | {versus} | {seams['jump_mean']:.3f} / {seams['jump_p95']:.3f} | "
+            f"{seams['early_step_max_mean']:.3f} | {r['mean_steps']:.1f} |")
+    return "\n".join(lines)
 
 
 def write_rollout_gif(path, frames, scale=3):
@@ -659,8 +707,12 @@ def main(argv=None) -> None:
     p.add_argument("--planned", action="store_true",
                    help="with --prefix: also give the old chunk's plan after the prefix, which the "
                         "new chunk is pulled towards")
+    p = commands.add_parser("latency-table", help="a Markdown table of eval results with latency")
+    p.add_argument("results", nargs="+", type=Path, help="files of eval's JSON lines")
     args = parser.parse_args(argv)
-    if args.command == "collect":
+    if args.command == "latency-table":
+        print(latency_table(args.results))
+    elif args.command == "collect":
         collect(args.task, args.model_dir, args.episodes, args.first_seed)
     elif args.command == "calibration":
         write_calibration(args.model_dir, args.count)
