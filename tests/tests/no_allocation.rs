@@ -5,7 +5,7 @@
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
-use scdp_engine::{ArenaPlan, Model, ModelConfig, Noise, Policy};
+use scdp_engine::{ArenaPlan, Model, ModelConfig, Noise, Policy, Prefix};
 use scdp_tests::{Fixture, golden_fixtures, synthetic_weights_file};
 use weights_tool::writer::AlignedBytes;
 
@@ -69,7 +69,9 @@ fn load_and_inference_allocate_nothing() {
         let frames = config.n_obs_steps as usize;
         let frame_bytes = fixture.images.len() / frames;
         let state_dim = config.state_dim as usize;
-        let mut first_actions = [f32::NAN; 2];
+        let prefix = fixture.prefix_actions();
+        let planned = fixture.planned_actions();
+        let mut first_actions = [f32::NAN; 3];
         let count = allocations_during(|| {
             let model = Model::from_bytes(weights.as_slice()).unwrap();
             let mut policy = Policy::new(&model, arena.as_mut_slice()).unwrap();
@@ -85,6 +87,9 @@ fn load_and_inference_allocate_nothing() {
             // Both noise sources: given values and the engine's own generator.
             first_actions[0] = policy.infer(Noise::Given(&noise)).unwrap().action()[0];
             first_actions[1] = policy.infer(Noise::Seed(5)).unwrap().action()[0];
+            // With the fixture's committed prefix and planned rows, if it has them.
+            let held = Prefix::new(&prefix, fixture.prefix_mode).with_planned(&planned);
+            first_actions[2] = policy.infer_with(Noise::Seed(5), held).unwrap().action()[0];
         });
         assert!(first_actions.iter().all(|a| a.is_finite()));
         assert_eq!(

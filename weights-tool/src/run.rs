@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, ensure};
 use safetensors::{Dtype, SafeTensors};
-use scdp_engine::{ArenaPlan, Camera, Model, ModelConfig, Noise, Policy};
+use scdp_engine::{ArenaPlan, Camera, Model, ModelConfig, Noise, Policy, Prefix, PrefixMode};
 
 use crate::writer::AlignedBytes;
 
@@ -22,6 +22,32 @@ pub struct RunInputs {
     pub noise: Option<Vec<f32>>,
     pub intrinsics: [[f32; 3]; 3],
     pub extrinsics: [[f32; 4]; 4],
+    /// `[k, action_dim]` committed actions (docs/SPEC.md section 5.1), empty for none.
+    pub prefix: Vec<f32>,
+    /// `[m, action_dim]` planned actions after them, empty for none.
+    pub planned: Vec<f32>,
+    pub prefix_mode: PrefixMode,
+}
+
+impl RunInputs {
+    /// The committed prefix and planned rows, as the engine takes them.
+    pub fn held(&self) -> Prefix<'_> {
+        Prefix::new(&self.prefix, self.prefix_mode).with_planned(&self.planned)
+    }
+}
+
+/// An optional `[rows, action_dim]` f32 tensor, empty when absent.
+fn optional_rows(
+    tensors: &SafeTensors<'_>,
+    name: &str,
+    action_dim: usize,
+    path: &Path,
+) -> Result<Vec<f32>> {
+    let Ok(view) = tensors.tensor(name) else {
+        return Ok(Vec::new());
+    };
+    let rows = view.shape().first().copied().unwrap_or(0);
+    tensor_f32(tensors, name, &[rows, action_dim], path)
 }
 
 fn tensor_f32(
@@ -83,6 +109,23 @@ impl RunInputs {
             Ok(_) => Some(tensor_f32(&tensors, "noise", &sequence, path)?),
             Err(_) => None,
         };
+        let action_dim = config.action_dim as usize;
+        let prefix = optional_rows(&tensors, "prefix", action_dim, path)?;
+        let planned = optional_rows(&tensors, "planned", action_dim, path)?;
+        let (_, metadata) = SafeTensors::read_metadata(&bytes)?;
+        let prefix_mode = match metadata
+            .metadata()
+            .as_ref()
+            .and_then(|entries| entries.get("prefix_mode"))
+            .map(String::as_str)
+        {
+            None | Some("replace") => PrefixMode::Replace,
+            Some("noised") => PrefixMode::Noised,
+            Some(other) => anyhow::bail!(
+                "{}: prefix_mode `{other}` is neither `replace` nor `noised`",
+                path.display()
+            ),
+        };
         let k = tensor_f32(&tensors, "camera_k", &[3, 3], path)?;
         let t = tensor_f32(&tensors, "camera_t", &[4, 4], path)?;
         let mut intrinsics = [[0.0; 3]; 3];
@@ -99,6 +142,9 @@ impl RunInputs {
             noise,
             intrinsics,
             extrinsics,
+            prefix,
+            planned,
+            prefix_mode,
         })
     }
 }
@@ -179,7 +225,7 @@ impl Runner {
         let (outputs, denoise) = self.with_frames(inputs, &mut times, |policy| {
             let start = Instant::now();
             let actions = policy
-                .infer(noise)
+                .infer_with(noise, inputs.held())
                 .map_err(|error| anyhow::anyhow!("inference: {error}"))?;
             let denoise = start.elapsed();
             let outputs = RunOutputs {
@@ -310,7 +356,7 @@ pub fn bench(
             push_frames(policy, inputs, &mut times)?;
             let start = Instant::now();
             policy
-                .infer(noise)
+                .infer_with(noise, inputs.held())
                 .map_err(|error| anyhow::anyhow!("inference: {error}"))?;
             times.denoise = start.elapsed();
             if iteration > 0 {

@@ -141,6 +141,9 @@ pub fn synthetic_scenes(
                 noise: None,
                 intrinsics,
                 extrinsics,
+                prefix: Vec::new(),
+                planned: Vec::new(),
+                prefix_mode: scdp_engine::PrefixMode::Replace,
             }
         })
         .collect()

@@ -236,6 +236,30 @@ fn run_reproduces_a_golden_fixture() {
     );
 }
 
+/// A run file with a committed prefix and planned rows (docs/SPEC.md section 5.1) is run
+/// with them: the output is the prefix fixture's reference, not the plain chunk's.
+#[test]
+fn run_holds_a_run_files_prefix() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = repo_file("tests/configs/tiny.toml");
+    let checkpoint = dir.path().join("tiny.safetensors");
+    let output = tool(&[
+        "synth",
+        "--config",
+        config.to_str().unwrap(),
+        "--seed",
+        "1",
+        "-o",
+        checkpoint.to_str().unwrap(),
+    ]);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    for case in ["prefix-noised", "prefix-planned"] {
+        let inputs = repo_file(&format!("tests/fixtures/golden/tiny/{case}.safetensors"));
+        let result = convert_and_run(&checkpoint, &config, &inputs, dir.path());
+        assert_action_pred_matches(&result, &inputs, &checkpoint);
+    }
+}
+
 /// Runs the tool, expecting failure with exactly one line on stderr that contains `needle`.
 fn assert_one_line_error(args: &[&str], needle: &str) {
     let output = tool(args);
