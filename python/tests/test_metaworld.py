@@ -78,3 +78,15 @@ def test_state_starts_with_the_tool_centre_point(scene):
     state = scene.state()
     assert state.shape == (sim.STATE_DIM,) and state.dtype == np.float32
     np.testing.assert_allclose(state[:3], scene.env.tcp_center, rtol=0, atol=1e-6)
+
+
+def test_the_goal_stays_observable_after_a_step():
+    # Meta-World clips each step's observation to a space cached at construction; unless the
+    # scene re-derives it, the goal (the last 3 values) reads zero from the first step on and
+    # push's expert, which steers by it, pushes towards the origin.
+    scene = sim.Scene("push-v3")
+    scene.reset(3)
+    goal = np.array(scene.env._target_pos)
+    assert np.linalg.norm(goal) > 0.1
+    scene.step(np.zeros(4))
+    np.testing.assert_allclose(scene.observation[-3:], goal, atol=1e-9)
