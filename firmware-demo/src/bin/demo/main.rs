@@ -317,7 +317,7 @@ fn print_summary(stats: &LoopStats, simulated_us: u64, wall_seconds: f64) {
     let seams = &stats.seams;
     let figure = |value: Option<f64>| value.map_or("-".into(), |v| format!("{v:.4}"));
     println!(
-        "  seams over {} hand-overs ({} committed prefix rows given): jump mean {} max {:.4}; \
+        "  seams over {} hand-overs ({} committed rows offered as prefixes): jump mean {} max {:.4}; \
          largest of the next {} steps mean {} max {:.4} (action units)",
         seams.count,
         stats.prefix_rows,
