@@ -137,6 +137,24 @@ impl Fixture {
 
 /// The kernel backends this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2,avx512` (as CI sets it)
 /// turns a missing backend into a failure instead of a silent skip.
+/// A camera 0.8 m in front of the scene, looking along +z, focal length the image width:
+/// the synthetic tests' view (anchors near the image centre).
+pub fn frontal_camera(config: &ModelConfig) -> Camera {
+    let (h, w) = (config.image_height as f32, config.image_width as f32);
+    let k = [
+        [w, 0.0, (w - 1.0) / 2.0],
+        [0.0, w, (h - 1.0) / 2.0],
+        [0.0, 0.0, 1.0],
+    ];
+    let t = [
+        [1.0, 0.0, 0.0, 0.02],
+        [0.0, 1.0, 0.0, -0.01],
+        [0.0, 0.0, 1.0, 0.8],
+        [0.0, 0.0, 0.0, 1.0],
+    ];
+    Camera::new(&k, &t).expect("a valid camera")
+}
+
 pub fn available_backends() -> Vec<Backend> {
     let mut found = vec![Backend::Scalar];
     for backend in [Backend::Avx2, Backend::Avx512, Backend::Amx] {

@@ -6,7 +6,7 @@
 use scdp_engine::rng::NoiseRng;
 use scdp_engine::{ArenaPlan, Backend, Camera, Model, ModelConfig, Noise, Policy};
 use scdp_tests::{
-    available_backends, synthetic_narrow_weights_file, synthetic_weights_file,
+    available_backends, frontal_camera, synthetic_narrow_weights_file, synthetic_weights_file,
     synthetic_weights_file_as,
 };
 use weights_tool::Quant;
@@ -98,22 +98,10 @@ fn inputs(config: &ModelConfig) -> Inputs {
                 .collect()
         })
         .collect();
-    let (h, w) = (config.image_height as f32, config.image_width as f32);
-    let k = [
-        [w, 0.0, (w - 1.0) / 2.0],
-        [0.0, w, (h - 1.0) / 2.0],
-        [0.0, 0.0, 1.0],
-    ];
-    let t = [
-        [1.0, 0.0, 0.0, 0.02],
-        [0.0, 1.0, 0.0, -0.01],
-        [0.0, 0.0, 1.0, 0.8],
-        [0.0, 0.0, 0.0, 1.0],
-    ];
     Inputs {
         frames,
         states,
-        camera: Camera::new(&k, &t).unwrap(),
+        camera: frontal_camera(config),
     }
 }
 

@@ -5,29 +5,13 @@
 //! fixtures (golden.rs, int8_fidelity.rs).
 
 use scdp_engine::{
-    ArenaPlan, Backend, Camera, Error, Model, ModelConfig, Noise, Policy, Prefix, PrefixMode,
+    ArenaPlan, Backend, Error, Model, ModelConfig, Noise, Policy, Prefix, PrefixMode,
 };
-use scdp_tests::{available_backends, synthetic_weights_file_as};
+use scdp_tests::{available_backends, frontal_camera, synthetic_weights_file_as};
 use weights_tool::Quant;
 use weights_tool::writer::AlignedBytes;
 
 const MODES: [PrefixMode; 2] = [PrefixMode::Replace, PrefixMode::Noised];
-
-fn camera(config: &ModelConfig) -> Camera {
-    let (h, w) = (config.image_height as f32, config.image_width as f32);
-    let k = [
-        [w, 0.0, (w - 1.0) / 2.0],
-        [0.0, w, (h - 1.0) / 2.0],
-        [0.0, 0.0, 1.0],
-    ];
-    let t = [
-        [1.0, 0.0, 0.0, 0.02],
-        [0.0, 1.0, 0.0, -0.01],
-        [0.0, 0.0, 1.0, 0.8],
-        [0.0, 0.0, 0.0, 1.0],
-    ];
-    Camera::new(&k, &t).unwrap()
-}
 
 /// A policy of `config` on `weights` with two observations pushed.
 fn observed<'w, 'a>(
@@ -37,7 +21,7 @@ fn observed<'w, 'a>(
 ) -> Policy<'w, 'a> {
     let config = *model.config();
     let mut policy = Policy::with_backend(model, arena.as_mut_slice(), backend).unwrap();
-    policy.set_camera(camera(&config));
+    policy.set_camera(frontal_camera(&config));
     let frame = (config.image_height * config.image_width * 3) as usize;
     for f in 0..2usize {
         let image: Vec<u8> = (0..frame).map(|i| ((i * 7 + f * 31) % 256) as u8).collect();

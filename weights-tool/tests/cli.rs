@@ -209,11 +209,9 @@ fn containers_written_by_pytorch_convert_and_run_to_the_reference_output() {
     }
 }
 
-#[test]
-fn run_reproduces_a_golden_fixture() {
-    let dir = tempfile::tempdir().unwrap();
-    let config = repo_file("tests/configs/metaworld.toml");
-    let checkpoint = dir.path().join("metaworld.safetensors");
+/// `weights-tool synth` of `config` at seed 1 (the golden fixtures' weights) into `dir`.
+fn synth_seed_1(config: &Path, dir: &Path) -> PathBuf {
+    let checkpoint = dir.join("synthetic.safetensors");
     let output = tool(&[
         "synth",
         "--config",
@@ -224,6 +222,14 @@ fn run_reproduces_a_golden_fixture() {
         checkpoint.to_str().unwrap(),
     ]);
     assert!(output.status.success(), "{}", text(&output.stderr));
+    checkpoint
+}
+
+#[test]
+fn run_reproduces_a_golden_fixture() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = repo_file("tests/configs/metaworld.toml");
+    let checkpoint = synth_seed_1(&config, dir.path());
     let inputs = repo_file("tests/fixtures/golden/metaworld/edge.safetensors");
     let result = convert_and_run(&checkpoint, &config, &inputs, dir.path());
     assert_action_pred_matches(&result, &inputs, &checkpoint);
@@ -242,17 +248,7 @@ fn run_reproduces_a_golden_fixture() {
 fn run_holds_a_run_files_prefix() {
     let dir = tempfile::tempdir().unwrap();
     let config = repo_file("tests/configs/tiny.toml");
-    let checkpoint = dir.path().join("tiny.safetensors");
-    let output = tool(&[
-        "synth",
-        "--config",
-        config.to_str().unwrap(),
-        "--seed",
-        "1",
-        "-o",
-        checkpoint.to_str().unwrap(),
-    ]);
-    assert!(output.status.success(), "{}", text(&output.stderr));
+    let checkpoint = synth_seed_1(&config, dir.path());
     for case in ["prefix-noised", "prefix-planned"] {
         let inputs = repo_file(&format!("tests/fixtures/golden/tiny/{case}.safetensors"));
         let result = convert_and_run(&checkpoint, &config, &inputs, dir.path());
