@@ -71,7 +71,7 @@ def test_shipped_int8_agreement_is_within_the_budget(folder):
 @pytest.mark.parametrize("quant", ["f32", "int8"])
 @pytest.mark.parametrize("folder", TRAINED, ids=lambda f: f.name)
 def test_engine_reproduces_torch_on_recorded_observations(folder, quant, f32_weights):
-    """Bounds: f32 within the issue's 2e-4; int8 within the agreement budget the project
+    """Bounds: f32 within the product's 2e-4; int8 within the agreement budget the project
     states for it, max 0.02 (docs/METAWORLD.md), which the shipped files meet on every
     inference of the 100 torch rollouts (eval.json), so on these few recorded ones too."""
     bound = 2e-4 if quant == "f32" else INT8_AGREEMENT_MAX

@@ -1,4 +1,4 @@
-//! Issue 8, determinism: the same weights, inputs and seed give the same output bits, run
+//! Determinism: the same weights, inputs and seed give the same output bits, run
 //! after run and across engine instances; and the engine's noise generator produces the
 //! values its documentation (engine/src/rng.rs) defines, checked against an independent
 //! implementation.

@@ -3,7 +3,7 @@
 //! tool, run by the engine on each golden fixture's inputs, compared stage by stage with
 //! the float64 reference.
 //!
-//! Tolerances. The hard bound is the issue's: `action_pred` within 2e-4 of the float64
+//! Tolerances. The hard bound is the product's: `action_pred` within 2e-4 of the float64
 //! truth in normalized action units (|error| x action scale). Each intermediate stage is
 //! held to `STAGE_FACTOR` times the deviation of float32 PyTorch from the same truth
 //! (recorded in the fixture), plus a floor of `FLOOR` relative to the stage's magnitude for

@@ -23,7 +23,7 @@ use scdp_tests::{
 };
 use weights_tool::Quant;
 
-/// The product's floor (the int8 issue), normalized action units.
+/// The product's int8 floor, normalized action units.
 const FLOOR_MAX: f64 = 0.02;
 const FLOOR_MEAN: f64 = 0.005;
 const PANDA_INT8_FILE_BYTES: usize = 30_000_000;

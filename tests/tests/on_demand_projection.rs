@@ -1,4 +1,4 @@
-//! Issue 6, "don't compute what is never read": large 3x3 projections are evaluated only at
+//! "Don't compute what is never read": large 3x3 projections are evaluated only at
 //! the cells the anchors sample, cached per frame. The actions must be exactly those of the
 //! dense maps: a policy whose maps were completed before the inference (every cell, through
 //! `Policy::feature_map`) and one that computed cells on demand give the same bits, on every

@@ -1,4 +1,4 @@
-//! Issue 8: bad files and bad inputs. Every row of docs/ROBUSTNESS.md names one of these
+//! Bad files and bad inputs. Every row of docs/ROBUSTNESS.md names one of these
 //! tests. Each engine call below runs inside `no_alloc`, a counting global allocator that
 //! fails the test if the call allocates, so every error row is also shown to allocate
 //! nothing (the corrupt files, arenas and inputs are prepared outside the counted region,
