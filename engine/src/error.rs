@@ -122,7 +122,7 @@ pub enum Error {
         action_dim: usize,
         found: usize,
     },
-    /// NaN or infinity in a committed prefix.
+    /// NaN or infinity in a committed prefix or its planned rows.
     NonFinitePrefix,
     /// Intrinsics with a non-positive or non-finite focal length, or non-finite centre.
     BadIntrinsics,

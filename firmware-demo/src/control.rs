@@ -142,7 +142,7 @@ pub struct ControlLoop<'f, P, C, W> {
     running: Option<(Running, u64)>,
     /// The chunk of the running inference, held until it is delivered.
     chunk: [f32; MAX_CHUNK * MAX_ACTION_DIM],
-    /// The committed prefix given to the running inference.
+    /// The committed prefix and planned rows given to the running inference.
     prefix: [f32; MAX_CHUNK * MAX_ACTION_DIM],
     /// The actions run lately, oldest first: the part of a prefix already executed.
     executed: Deque<TimedAction, MAX_CHUNK>,

@@ -397,11 +397,29 @@ def run_episode(scene, runtime, cfg, seed, record=None, frames=None, latency=0, 
         raise SystemExit(f"latency {latency} leaves fewer than n_action_steps rows of the horizon")
     steps, chunk, solved, latencies, seams = 0, 0, False, [], []
     plan, rest, anchors, last = [], [], None, None
+
+    def execute(actions, push_before=None):
+        """Steps the scene through `actions` (pushing the frame before action `push_before`
+        to the policy); False once the episode is over."""
+        nonlocal steps, solved, last
+        for index, action in enumerate(actions):
+            if frames is not None:
+                frames.append((scene.render(), anchors))
+            if index == push_before:
+                runtime.push(scene.render(), scene.state())
+            solved = scene.step(action)
+            steps += 1
+            last = action
+            if solved or steps >= scene.max_steps:
+                return False
+        return True
+
     image, state = scene.render(), scene.state()
     while steps < scene.max_steps and not solved:
         # The observation: now, with `latency` actions of the plan still to run (none for the
         # first chunk, which the arm waits for).
-        committed = np.array(plan[len(plan) - latency:] if chunk else [], np.float32).reshape(-1, cfg["action_dim"])
+        committed = np.array(plan[len(plan) - latency:] if chunk and latency else [], np.float32)
+        committed = committed.reshape(-1, cfg["action_dim"])
         noise = episode_noise(seed, chunk, cfg)
         started = time.perf_counter()
         runtime.push(image, state)
@@ -415,17 +433,9 @@ def run_episode(scene, runtime, cfg, seed, record=None, frames=None, latency=0, 
                            "camera_t": camera_t, "action_pred": action_pred, "seed": seed, "chunk": chunk,
                            "prefix": held, "prefix_mode": prefix_mode, "planned": pulled})
         # While it computes, the old plan's last `latency` actions run.
-        skip = len(committed)
-        for action in committed:
-            if frames is not None:
-                frames.append((scene.render(), anchors))
-            solved = scene.step(action)
-            steps += 1
-            last = action
-            if solved or steps >= scene.max_steps:
-                break
-        if solved or steps >= scene.max_steps:
+        if not execute(committed):
             break
+        skip = len(committed)
         plan = list(action_pred[first + skip : first + skip + count])
         rest = list(action_pred[first + skip + count :])
         anchors = new_anchors
@@ -434,16 +444,7 @@ def run_episode(scene, runtime, cfg, seed, record=None, frames=None, latency=0, 
         # Run the plan up to the next observation, which is taken with `latency` actions left
         # (the frame before it, too, when the policy looks at two).
         run_now = len(plan) - latency
-        for index, action in enumerate(plan[:run_now]):
-            if frames is not None:
-                frames.append((scene.render(), anchors))
-            if index == run_now - 1 and cfg["n_obs_steps"] > 1:
-                runtime.push(scene.render(), scene.state())
-            solved = scene.step(action)
-            steps += 1
-            last = action
-            if solved or steps >= scene.max_steps:
-                break
+        execute(plan[:run_now], run_now - 1 if cfg["n_obs_steps"] > 1 else None)
         image, state = scene.render(), scene.state()
         chunk += 1
     return solved, steps, latencies, seams

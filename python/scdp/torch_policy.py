@@ -331,7 +331,7 @@ class SCDPPolicy(nn.Module):
         m = 0 if planned is None else planned.shape[1]
         rows = slice(first, first + k)
         pulled = slice(first + k, first + k + m)
-        if prefix is not None:
+        if k:
             held = self.normalizer.normalize("action", prefix.float())
             initial = sample[:, rows].clone()
         if m:
@@ -340,17 +340,14 @@ class SCDPPolicy(nn.Module):
             weight = torch.tensor([(m - j) / (m + 1) for j in range(m)])[None, :, None]
         anchors = []
         for t in range(ratio * (steps - 1), -1, -ratio):
-            if prefix is not None:
-                sample = sample.clone()
-                if prefix_mode == "noised":
-                    a_t = self.alphas_cumprod[t]
-                    sample[:, rows] = a_t.sqrt() * held + (1 - a_t).sqrt() * initial
-                else:
-                    sample[:, rows] = held
-            if m:
+            if k or m:
                 a_t = self.alphas_cumprod[t]
-                target = a_t.sqrt() * guide + (1 - a_t).sqrt() * guide_noise
                 sample = sample.clone()
+            if k:
+                noised = prefix_mode == "noised"
+                sample[:, rows] = a_t.sqrt() * held + (1 - a_t).sqrt() * initial if noised else held
+            if m:
+                target = a_t.sqrt() * guide + (1 - a_t).sqrt() * guide_noise
                 sample[:, pulled] = weight * target + (1 - weight) * sample[:, pulled]
             cond, uv, valid = self.global_condition(features, sample, state, camera_k, camera_t)
             if record_anchors:
@@ -363,7 +360,7 @@ class SCDPPolicy(nn.Module):
             if cfg.get("clip_sample", True):
                 x0 = x0.clamp(-1.0, 1.0)
             sample = a_prev.sqrt() * x0 + (1 - a_prev).sqrt() * eps
-        if prefix is not None:
+        if k:
             sample = sample.clone()
             sample[:, rows] = held
         action_pred = self.normalizer.unnormalize("action", sample)
