@@ -123,16 +123,12 @@ fn assert_close(found: &[f32], expected: &[f64], magnitude: &[f64], what: &str) 
 }
 
 /// Every implementation this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2,avx512` (as CI sets
-/// it, with amx where the CPU lists it) makes a missing backend a failure instead of a
-/// silent skip.
+/// it, with amx where the CPU lists it; `neon,dot,i8mm` under emulation of an ARM core that
+/// has them) makes a missing backend a failure instead of a silent skip.
 fn backends() -> Vec<(&'static str, &'static dyn Kernels)> {
     let mut found = Vec::new();
-    for (name, backend) in [
-        ("scalar", Backend::Scalar),
-        ("avx2", Backend::Avx2),
-        ("avx512", Backend::Avx512),
-        ("amx", Backend::Amx),
-    ] {
+    for backend in Backend::ALL.into_iter().filter(|&b| b != Backend::Auto) {
+        let name = backend.name();
         if let Some(kernels) = scdp_engine::kernels::select(backend) {
             assert_eq!(
                 kernels.name(),
@@ -1531,6 +1527,7 @@ fn check_on_tiles(
     case: &str,
 ) -> Option<TileLayout> {
     let problem = Int8Case::random(rng, shape, true);
+    #[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
     let mut layout = None;
     let initial = rng.vec(shape.output_len());
     for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
@@ -1560,6 +1557,7 @@ fn check_on_tiles(
 fn byte_convolution_equals_the_digit_convolution_on_every_backend() {
     let mut rng = Lcg(77);
     let backends = backends();
+    #[cfg(target_arch = "x86_64")]
     let mut on_tiles = 0;
     for case in 0..24 {
         let pixels = [1, 15, 16, 17, 31, 32, 33, 9 * 160][case % 8];
@@ -1571,10 +1569,13 @@ fn byte_convolution_equals_the_digit_convolution_on_every_backend() {
         for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
             let what = format!("case {case} {shape:?} {accumulate:?}");
             let expected = problem.check_backends(&backends, accumulate, &initial, &what);
+            // The AMX tiles alone, where this architecture has them.
             #[cfg(target_arch = "x86_64")]
             if problem.check_tiles(accumulate, &initial, &expected, &what) {
                 on_tiles += 1;
             }
+            #[cfg(not(target_arch = "x86_64"))]
+            let _ = expected;
         }
     }
     #[cfg(target_arch = "x86_64")]
@@ -1736,6 +1737,7 @@ impl ByteCase {
 fn narrow_byte_convolution_is_bit_identical_on_every_backend() {
     let mut rng = Lcg(83);
     let backends = backends();
+    #[cfg(target_arch = "x86_64")]
     let mut on_tiles = 0;
     for case in 0..60 {
         let kernel = [1, 3][case % 2];
@@ -1772,10 +1774,13 @@ fn narrow_byte_convolution_is_bit_identical_on_every_backend() {
         for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
             let what = format!("case {case} {shape:?} {accumulate:?}");
             let expected = problem.check_backends(&backends, accumulate, &initial, &what);
+            // The AMX tiles alone, where this architecture has them.
             #[cfg(target_arch = "x86_64")]
             if problem.check_tiles(accumulate, &initial, &expected, &what) {
                 on_tiles += 1;
             }
+            #[cfg(not(target_arch = "x86_64"))]
+            let _ = expected;
         }
         // The model's path: quantize in the backend's form, then convolve.
         let values: Vec<f32> = (0..shape.input_len())
@@ -1838,14 +1843,14 @@ fn byte_tiles_stop_at_the_exact_sum_bound() {
 }
 
 /// The narrow forms each backend asks for: whole bytes where its byte products take 0..=255
-/// (the reference, VNNI, the AMX tiles), digit planes otherwise (AVX2's `vpmaddubsw`
-/// saturates). A backend quietly falling back to the digits would still pass the
+/// (the reference, VNNI, the AMX tiles, I8MM's `usdot`), digit planes otherwise (AVX2's
+/// `vpmaddubsw` saturates; NEON's and `sdot`'s products are signed). A backend quietly falling back to the digits would still pass the
 /// bit-identity tests while giving up the narrow path's speed.
 #[test]
 fn backends_read_narrow_codes_in_their_fastest_form() {
     for (name, kernels) in backends() {
         let expected = match name {
-            "scalar" | "avx512" | "amx" => NarrowForm::Bytes,
+            "scalar" | "avx512" | "amx" | "i8mm" => NarrowForm::Bytes,
             _ => NarrowForm::Digits,
         };
         assert_eq!(kernels.narrow_form(), expected, "{name}");

@@ -6,17 +6,22 @@
 //! they are [`Kernels`] methods too, so a SIMD backend can compile that same code for its
 //! vectors (same bits, tested).
 //!
-//! Adding an architecture (say aarch64 NEON with SDOT) touches no model code: a folder
-//! `kernels/aarch64/` with a type implementing [`Kernels`] (methods it does not speed up can
-//! call [`scalar::Scalar`]), a [`Backend`] variant, a branch in [`select`] behind its own
-//! feature detection, and its name in `backends()` of the kernel tests and in
-//! `SCDP_REQUIRE_BACKENDS`, so the shared test suite runs it against the reference. The int8
-//! weight layout already suits SDOT: convolution weights are stored in input-channel quads
-//! (`[out/64, kh, kw, in/4, 64, 4]`, [`int8_quad_index`], docs/FORMAT.md), the four bytes
-//! one `sdot` lane reads.
+//! The SIMD backends of each architecture (`x86_64/`: AVX2, AVX-512, AMX; `aarch64/`: NEON,
+//! dot product, I8MM) share their bodies (`simd/`), written over small vector traits; a
+//! backend is a type implementing [`Kernels`] (methods it does not speed up fall back on
+//! [`scalar::Scalar`] or the portable defaults), a [`Backend`] variant and a branch in
+//! [`select`] behind its own feature detection; the kernel tests run every backend in
+//! [`available`] against the reference, and `SCDP_REQUIRE_BACKENDS` makes one that did not
+//! run fail them. The int8 weight layout (input-channel quads,
+//! `[out/64, kh, kw, in/4, 64, 4]`, [`int8_quad_index`], docs/FORMAT.md) is the four bytes
+//! one `vpdpbusd` or `sdot` lane reads.
 
+#[cfg(target_arch = "aarch64")]
+pub mod aarch64;
 pub mod ops;
 pub mod scalar;
+#[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
+pub(crate) mod simd;
 #[cfg(target_arch = "x86_64")]
 pub mod x86_64;
 
@@ -46,6 +51,49 @@ pub enum Backend {
     /// unit, the rest as [`Backend::Avx512`]. On Linux, detection asks the OS for the tile
     /// registers.
     Amx,
+    /// aarch64 NEON: the f32 kernels on NEON vectors (AVX2's bits), int8 on widening
+    /// multiplies.
+    Neon,
+    /// aarch64 NEON with the dot-product extension: the int8 convolutions on `sdot`.
+    Dot,
+    /// aarch64 with I8MM: as [`Backend::Dot`], and whole bytes (the stem, the narrow
+    /// activations) on `usdot`.
+    I8mm,
+}
+
+impl Backend {
+    /// Every backend, [`Backend::Auto`] first.
+    pub const ALL: [Backend; 8] = [
+        Backend::Auto,
+        Backend::Scalar,
+        Backend::Avx2,
+        Backend::Avx512,
+        Backend::Amx,
+        Backend::Neon,
+        Backend::Dot,
+        Backend::I8mm,
+    ];
+
+    /// The name [`Kernels::name`] reports for it (`"auto"` for [`Backend::Auto`]).
+    pub const fn name(self) -> &'static str {
+        match self {
+            Backend::Auto => "auto",
+            Backend::Scalar => "scalar",
+            Backend::Avx2 => "avx2",
+            Backend::Avx512 => "avx512",
+            Backend::Amx => "amx",
+            Backend::Neon => "neon",
+            Backend::Dot => "dot",
+            Backend::I8mm => "i8mm",
+        }
+    }
+
+    /// The backend of that name.
+    pub fn from_name(name: &str) -> Option<Backend> {
+        Backend::ALL
+            .into_iter()
+            .find(|backend| backend.name() == name)
+    }
 }
 
 /// The implementation for `backend`, or `None` when this CPU cannot run it. Detection uses
@@ -56,11 +104,62 @@ pub fn select(backend: Backend) -> Option<&'static dyn Kernels> {
         Backend::Avx2 => avx2(),
         Backend::Avx512 => avx512(),
         Backend::Amx => amx(),
+        Backend::Neon => neon(),
+        Backend::Dot => dot(),
+        Backend::I8mm => i8mm(),
         Backend::Auto => amx()
             .or_else(avx512)
             .or_else(avx2)
+            .or_else(i8mm)
+            .or_else(dot)
+            .or_else(neon)
             .or(Some(&scalar::Scalar)),
     }
+}
+
+/// Every implementation this CPU can run, fastest first, the scalar reference last.
+pub fn available() -> impl Iterator<Item = &'static dyn Kernels> {
+    [
+        Backend::Amx,
+        Backend::Avx512,
+        Backend::Avx2,
+        Backend::I8mm,
+        Backend::Dot,
+        Backend::Neon,
+        Backend::Scalar,
+    ]
+    .into_iter()
+    .filter_map(select)
+}
+
+#[cfg(target_arch = "aarch64")]
+fn neon() -> Option<&'static dyn Kernels> {
+    aarch64::Neon::detect().map(|kernels| kernels as &'static dyn Kernels)
+}
+
+#[cfg(target_arch = "aarch64")]
+fn dot() -> Option<&'static dyn Kernels> {
+    aarch64::Dot::detect().map(|kernels| kernels as &'static dyn Kernels)
+}
+
+#[cfg(target_arch = "aarch64")]
+fn i8mm() -> Option<&'static dyn Kernels> {
+    aarch64::I8mm::detect().map(|kernels| kernels as &'static dyn Kernels)
+}
+
+#[cfg(not(target_arch = "aarch64"))]
+fn neon() -> Option<&'static dyn Kernels> {
+    None
+}
+
+#[cfg(not(target_arch = "aarch64"))]
+fn dot() -> Option<&'static dyn Kernels> {
+    None
+}
+
+#[cfg(not(target_arch = "aarch64"))]
+fn i8mm() -> Option<&'static dyn Kernels> {
+    None
 }
 
 #[cfg(target_arch = "x86_64")]

@@ -4,12 +4,12 @@
 //! shared body of `int8` on YMM vectors. The U-Net's 1-D convolutions, upsampling and
 //! matrix-vector products use the weight-streaming `sequence` kernels.
 
-use super::f32_tile;
 use super::lanes::Ymm;
-use super::sequence::{self, Sequence};
-use super::{elementwise, int8};
+use super::sequence;
 use crate::kernels::ops::Activation;
 use crate::kernels::scalar::{Scalar, assert_conv_lengths, assert_conv_pixel_lengths};
+use crate::kernels::simd::f32_tile;
+use crate::kernels::simd::sequence::Sequence;
 use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels};
 
 /// Output pixels per tile and output channels per tile (6 was fastest of 4, 5 and 6 on

@@ -3,7 +3,7 @@
 //! `sequence` kernels, all on ZMM vectors; the AVX2 ones where those do not apply.
 
 use super::avx2::Avx2;
-use super::{avx512_f32, elementwise, int8, sequence};
+use super::{avx512_f32, int8, sequence};
 use crate::kernels::ops::Activation;
 use crate::kernels::scalar::{assert_conv_lengths, assert_conv_pixel_lengths};
 use crate::kernels::{
@@ -47,6 +47,14 @@ impl Kernels for Avx512 {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
+        // The sequence kernels sum the channels past their last whole vector unfused: where
+        // ZMM's last whole vector would end before YMM's, AVX2 runs the layer, so that every
+        // backend splits the channels as YMM (and NEON) do and gives their bits.
+        if shape.out_channels % 16 >= 8 {
+            return self
+                .avx2()
+                .conv(shape, input, weight, bias, output, accumulate);
+        }
         // SAFETY: `self` exists only when AVX-512 F/BW/VL were detected.
         if unsafe { sequence::avx512::conv(shape, (input, weight, bias), output, accumulate) }
             .is_some()

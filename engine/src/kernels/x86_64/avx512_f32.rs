@@ -7,8 +7,8 @@
 //! general registers): 30 loads for 28 FMAs, against 10 for 24. Layers this does not cover
 //! (out_channels not a multiple of 32, sequences) are the caller's to route elsewhere.
 
-use super::f32_tile;
 use super::lanes::Zmm;
+use crate::kernels::simd::f32_tile;
 use crate::kernels::{Accumulate, ConvShape};
 
 /// Output pixels per tile and output channels per tile where the output channels are not a

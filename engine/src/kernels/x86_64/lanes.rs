@@ -1,6 +1,4 @@
-//! The vector widths the f32 kernels are written over: one generic body (`f32_tile`,
-//! `sequence`) instantiated inside each backend's thin `#[target_feature]` wrapper, where
-//! `#[inline(always)]` lets these intrinsics compile with that backend's instructions.
+//! The x86-64 f32 vectors: YMM (AVX2 + FMA) and ZMM (AVX-512F).
 
 use core::arch::x86_64::{
     __m256, __m512, _mm_add_ps, _mm_add_ss, _mm_cvtss_f32, _mm_movehl_ps, _mm_shuffle_ps,
@@ -9,24 +7,7 @@ use core::arch::x86_64::{
     _mm512_loadu_ps, _mm512_reduce_add_ps, _mm512_set1_ps, _mm512_setzero_ps, _mm512_storeu_ps,
 };
 
-/// A vector of f32 lanes and the operations the f32 kernels need.
-///
-/// # Safety
-/// Every method requires the CPU to support the vector's instructions (AVX2 + FMA for
-/// [`Ymm`], AVX-512F for [`Zmm`]); pointers must cover `WIDTH` floats.
-pub(crate) unsafe trait Lanes {
-    type Vector: Copy;
-    const WIDTH: usize;
-    unsafe fn zero() -> Self::Vector;
-    unsafe fn load(from: *const f32) -> Self::Vector;
-    unsafe fn store(to: *mut f32, value: Self::Vector);
-    unsafe fn splat(value: f32) -> Self::Vector;
-    /// `a * b + c`, one rounding.
-    unsafe fn fma(a: Self::Vector, b: Self::Vector, c: Self::Vector) -> Self::Vector;
-    unsafe fn add(a: Self::Vector, b: Self::Vector) -> Self::Vector;
-    /// The sum of the lanes, in some fixed order.
-    unsafe fn horizontal_sum(value: Self::Vector) -> f32;
-}
+use crate::kernels::simd::lanes::Lanes;
 
 /// Eight lanes (AVX2 + FMA).
 pub(crate) struct Ymm;

@@ -10,7 +10,7 @@ macro_rules! shared_kernels {
     ($backend:ident) => {
         fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { sequence::$backend::matvec(weight, input, base, output) }
+            unsafe { crate::kernels::x86_64::sequence::matvec(weight, input, base, output) }
         }
 
         fn conv_int8(
@@ -24,9 +24,13 @@ macro_rules! shared_kernels {
             accumulate: Accumulate,
         ) {
             let parameters = (weight, weight_scales, bias);
-            let kernel = int8::$backend::conv;
+            let kernel = crate::kernels::x86_64::int8::$backend::conv;
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { int8::checked_conv(kernel, shape, input, parameters, output, accumulate) }
+            unsafe {
+                crate::kernels::simd::int8::checked_conv(
+                    kernel, shape, input, parameters, output, accumulate,
+                )
+            }
         }
 
         fn conv_int8_pixel(
@@ -40,9 +44,13 @@ macro_rules! shared_kernels {
             output: &mut [f32],
         ) {
             let parameters = (weight, weight_scales, bias);
-            let kernel = int8::$backend::conv_pixel;
+            let kernel = crate::kernels::x86_64::int8::$backend::conv_pixel;
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { int8::checked_conv_pixel(kernel, shape, input, parameters, pixel, output) }
+            unsafe {
+                crate::kernels::simd::int8::checked_conv_pixel(
+                    kernel, shape, input, parameters, pixel, output,
+                )
+            }
         }
 
         fn conv_int8_codes(
@@ -56,10 +64,12 @@ macro_rules! shared_kernels {
             accumulate: Accumulate,
         ) {
             let parameters = (weight, weight_scales, bias);
-            let kernel = int8::$backend::conv_codes;
+            let kernel = crate::kernels::x86_64::int8::$backend::conv_codes;
             // SAFETY: `self` exists only on a CPU with the backend's features.
             unsafe {
-                int8::checked_conv_codes(kernel, shape, input, parameters, output, accumulate)
+                crate::kernels::simd::int8::checked_conv_codes(
+                    kernel, shape, input, parameters, output, accumulate,
+                )
             }
         }
 
@@ -72,22 +82,32 @@ macro_rules! shared_kernels {
             output: &mut [f32],
         ) {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { int8::$backend::matvec_codes(weight, row_scales, input, base, output) }
+            unsafe {
+                crate::kernels::x86_64::int8::$backend::matvec_codes(
+                    weight, row_scales, input, base, output,
+                )
+            }
         }
 
         fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { elementwise::$backend::quantize_digits(input, digits) }
+            unsafe { crate::kernels::x86_64::elementwise::$backend::quantize_digits(input, digits) }
         }
 
         fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { elementwise::$backend::quantize_codes(input, row_len, codes) }
+            unsafe {
+                crate::kernels::x86_64::elementwise::$backend::quantize_codes(input, row_len, codes)
+            }
         }
 
         fn quantize_narrow_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { elementwise::$backend::quantize_narrow_codes(input, row_len, codes) }
+            unsafe {
+                crate::kernels::x86_64::elementwise::$backend::quantize_narrow_codes(
+                    input, row_len, codes,
+                )
+            }
         }
 
         fn quantize_signed_bytes(
@@ -98,7 +118,11 @@ macro_rules! shared_kernels {
             row_sums: &mut [i32],
         ) -> f32 {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { elementwise::$backend::quantize_signed_bytes(input, row_len, codes, row_sums) }
+            unsafe {
+                crate::kernels::x86_64::elementwise::$backend::quantize_signed_bytes(
+                    input, row_len, codes, row_sums,
+                )
+            }
         }
 
         fn quantize_narrow(
@@ -108,7 +132,9 @@ macro_rules! shared_kernels {
             form: crate::kernels::NarrowForm,
         ) -> f32 {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { elementwise::$backend::quantize_narrow(input, scratch, form) }
+            unsafe {
+                crate::kernels::x86_64::elementwise::$backend::quantize_narrow(input, scratch, form)
+            }
         }
 
         fn group_norm(
@@ -120,12 +146,20 @@ macro_rules! shared_kernels {
             activation: Activation,
         ) {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { elementwise::$backend::group_norm(data, channels, groups, affine, activation) }
+            unsafe {
+                crate::kernels::x86_64::elementwise::$backend::group_norm(
+                    data, channels, groups, affine, activation,
+                )
+            }
         }
 
         fn add_activate(&self, target: &mut [f32], source: &[f32], activation: Activation) {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { elementwise::$backend::add_activate(target, source, activation) }
+            unsafe {
+                crate::kernels::x86_64::elementwise::$backend::add_activate(
+                    target, source, activation,
+                )
+            }
         }
 
         fn add_channel_moments(
@@ -135,7 +169,11 @@ macro_rules! shared_kernels {
             moments: (&mut [f64], &mut [f64]),
         ) {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { elementwise::$backend::add_channel_moments(data, channels, moments) }
+            unsafe {
+                crate::kernels::x86_64::elementwise::$backend::add_channel_moments(
+                    data, channels, moments,
+                )
+            }
         }
 
         fn normalize_max_pool(
@@ -148,7 +186,9 @@ macro_rules! shared_kernels {
         ) {
             // SAFETY: `self` exists only on a CPU with the backend's features.
             unsafe {
-                elementwise::$backend::normalize_max_pool(input, dims, affine, activation, output)
+                crate::kernels::x86_64::elementwise::$backend::normalize_max_pool(
+                    input, dims, affine, activation, output,
+                )
             }
         }
 
@@ -159,7 +199,11 @@ macro_rules! shared_kernels {
             output: &mut [f32],
         ) {
             // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { elementwise::$backend::max_pool_3x3_stride_2(input, dims, output) }
+            unsafe {
+                crate::kernels::x86_64::elementwise::$backend::max_pool_3x3_stride_2(
+                    input, dims, output,
+                )
+            }
         }
     };
 }
@@ -169,68 +213,30 @@ pub mod avx2;
 pub mod avx512;
 pub mod avx512_f32;
 mod elementwise;
-mod f32_tile;
 mod int8;
+mod int8_lanes;
 mod lanes;
-pub(crate) mod sequence;
 
-use core::arch::x86_64::{__cpuid, __cpuid_count, _MM_HINT_T0, _MM_HINT_T1, _mm_prefetch, _xgetbv};
+use core::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
 
-use crate::kernels::ConvShape;
+/// The f32 U-Net kernels of `simd::sequence`: the convolutions on YMM and ZMM vectors.
+pub(crate) mod sequence {
+    use super::lanes::{Ymm, Zmm};
+    crate::kernels::simd::sequence::backend!(avx2, super::Ymm, "avx2,fma");
+    crate::kernels::simd::sequence::backend!(avx512, super::Zmm, "avx512f,avx512bw,avx512vl");
 
-/// Asks the caches for every 64-byte line of the `bytes` bytes from `start`, into L1. A
-/// hint only: it reads nothing architecturally and never faults, so `start` may point
-/// anywhere (the callers ask for lines past the end of their weights near the end of a
-/// layer), hence the wrapping address arithmetic.
-#[inline(always)]
-fn prefetch_lines<T>(start: *const T, bytes: usize) {
-    prefetch_lines_with::<_MM_HINT_T0, T>(start, bytes);
-}
-
-/// [`prefetch_lines`] into L2 only (`prefetcht1`): for weight streams asked for far ahead of
-/// the loads that read them. Asked into L1 16 KB ahead, the lines wait in the core's few
-/// L1 miss buffers and stall the loads the loop needs now; into L2 the f32 U-Net's stream
-/// from DRAM ran 1.5-1.7x faster (`benches/README.md`, Zen 4).
-#[inline(always)]
-fn prefetch_lines_into_l2<T>(start: *const T, bytes: usize) {
-    prefetch_lines_with::<_MM_HINT_T1, T>(start, bytes);
-}
-
-/// The lines of `bytes` bytes from `start` asked for with prefetch hint `HINT`.
-#[inline(always)]
-fn prefetch_lines_with<const HINT: i32, T>(start: *const T, bytes: usize) {
-    let start = start.cast::<i8>();
-    for line in (0..bytes).step_by(64) {
-        // SAFETY: a prefetch has no architectural effect and never faults; SSE is part of
-        // x86-64.
-        unsafe { _mm_prefetch::<HINT>(start.wrapping_add(line)) };
+    /// `Kernels::matvec` of both x86-64 backends, on YMM vectors: its sums run in lane
+    /// order, and eight lanes is the order every backend (NEON's too) shares, so one file
+    /// gives one answer. The f32 FiLM rows stream from memory at every step; wider vectors
+    /// would not read them faster.
+    ///
+    /// # Safety
+    /// The CPU supports AVX2 and FMA.
+    #[target_feature(enable = "avx2,fma")]
+    pub(crate) unsafe fn matvec(weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
+        // SAFETY: this function's contract is the body's.
+        unsafe { crate::kernels::simd::sequence::matvec::<Ymm>(weight, input, base, output) }
     }
-}
-
-/// Where each pixel of a tile reads kernel tap `(kernel_y, kernel_x)`: `pixels` are the
-/// output positions `(out_y, out_x)` of its `N` slots, the first `count` used. The input
-/// offset of the pixel's first channel, or `None` when the tap lies in the padding or the
-/// slot is unused. The f32 kernels skip those taps exactly as the scalar reference does, so
-/// every output pixel is one FMA chain over its inside taps, in tap and input-channel order,
-/// whichever tile (or single-pixel call) computes it.
-#[inline(always)]
-pub(crate) fn tap_offsets<const N: usize>(
-    shape: &ConvShape,
-    pixels: &[(usize, usize); N],
-    count: usize,
-    (kernel_y, kernel_x): (usize, usize),
-) -> [Option<usize>; N] {
-    // A plain loop: `array::from_fn` was not inlined here and cost a tenth of the stem.
-    let mut offsets = [None; N];
-    for (offset, &(out_y, out_x)) in offsets.iter_mut().zip(pixels).take(count) {
-        let in_y = (out_y * shape.stride + kernel_y).checked_sub(shape.padding_height);
-        let in_x = (out_x * shape.stride + kernel_x).checked_sub(shape.padding_width);
-        *offset = in_y
-            .filter(|&y| y < shape.in_height)
-            .zip(in_x.filter(|&x| x < shape.in_width))
-            .map(|(y, x)| (y * shape.in_width + x) * shape.in_channels);
-    }
-    offsets
 }
 
 /// Reads XCR0. Only called once CPUID has reported OSXSAVE.

@@ -3,7 +3,7 @@
 
 use super::lanes::Int8Lanes;
 use crate::kernels::scalar::{assert_matvec_codes_lengths, exact_row_sum, scaled_row_sum};
-use crate::kernels::x86_64::prefetch_lines;
+use crate::kernels::simd::prefetch_lines;
 use crate::kernels::{CodeRows, MAX_DIGIT_CHANNELS};
 
 /// Columns of a row summed in i32 lanes before the lanes are added up in i64: each lane then

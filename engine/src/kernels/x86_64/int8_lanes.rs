@@ -1,6 +1,5 @@
-//! The integer dot products the int8 kernels are generic over ([`Int8Lanes`]): AVX2
-//! `vpmaddubsw` and `vpmaddwd` on YMM, AVX-512 VNNI `vpdpbusd` and `vpdpwssd` on ZMM, and the
-//! exact widening of their i32 sums to f64 and the one rounding to f32.
+//! The x86-64 integer dot products of the int8 kernels: AVX2 `vpmaddubsw` and `vpmaddwd`
+//! on YMM, AVX-512 VNNI `vpdpbusd` and `vpdpwssd` on ZMM.
 
 use core::arch::x86_64::{
     __m256, __m256d, __m256i, __m512, __m512d, __m512i, _mm_loadu_si128, _mm256_add_epi32,
@@ -20,88 +19,7 @@ use core::arch::x86_64::{
 };
 
 use crate::kernels::ops;
-
-/// An integer dot product over input-channel quads, `WIDTH` output channels a vector, and
-/// the f32 arithmetic around it.
-///
-/// # Safety
-/// Every method requires the CPU to support the vector's instructions (AVX2 for
-/// [`PairSumsYmm`], AVX-512 F/BW/VNNI for [`VnniZmm`]); pointers must cover what each
-/// method reads or writes.
-pub(crate) unsafe trait Int8Lanes {
-    /// `WIDTH` i32 lanes: sums, and the bytes of `WIDTH` weight quads or a broadcast quad.
-    type Integers: Copy;
-    /// `WIDTH` f32 lanes.
-    type Floats: Copy;
-    /// `WIDTH` integers held exactly in two vectors of f64 lanes: sums over a whole kernel
-    /// that i32 lanes cannot hold.
-    type Exact: Copy;
-    const WIDTH: usize;
-    unsafe fn zero_integers() -> Self::Integers;
-    unsafe fn zero_floats() -> Self::Floats;
-    unsafe fn zero_exact() -> Self::Exact;
-    /// The quads of `WIDTH` output channels (`4 WIDTH` bytes).
-    unsafe fn load_weights(from: *const i8) -> Self::Integers;
-    /// Four activations, repeated in every lane.
-    unsafe fn broadcast_quad(from: *const i8) -> Self::Integers;
-    /// `sum + activations . weights` per lane: four u8 x i8 products, exact for
-    /// activations in 0..=127.
-    unsafe fn dot_quads(
-        sum: Self::Integers,
-        activations: Self::Integers,
-        weights: Self::Integers,
-    ) -> Self::Integers;
-    /// `2 WIDTH` consecutive weights widened to i16, two a lane. For a convolution these are
-    /// the quads of `WIDTH / 2` output channels: lanes `2k` and `2k + 1` hold weights (0, 1)
-    /// and (2, 3) of the `k`-th channel; for a FiLM row, `2 WIDTH` of its columns.
-    unsafe fn widen_quads(from: *const i8) -> Self::Integers;
-    /// Four i16 codes (one quad) as lane pairs: (c0, c1), (c2, c3), repeated.
-    unsafe fn broadcast_codes(from: *const i16) -> Self::Integers;
-    /// `sum + codes . weights` per lane: two i16 x i16 products, exact for codes and
-    /// weights in the scheme's range (|product| <= 16383 x 128).
-    unsafe fn dot_code_pairs(
-        sum: Self::Integers,
-        codes: Self::Integers,
-        weights: Self::Integers,
-    ) -> Self::Integers;
-    /// `2 WIDTH` consecutive i16 codes, two a lane.
-    unsafe fn load_codes(from: *const i16) -> Self::Integers;
-    /// `a + b` per i32 lane (wrapping).
-    unsafe fn add_integers(a: Self::Integers, b: Self::Integers) -> Self::Integers;
-    /// The sum of every i32 lane, exact.
-    unsafe fn lane_sum(sums: Self::Integers) -> i64;
-    /// The sums of adjacent lane pairs: those of `first` (channels 0 .. WIDTH/2), then those
-    /// of `second`, in channel order.
-    unsafe fn add_lane_pairs(first: Self::Integers, second: Self::Integers) -> Self::Integers;
-    /// `total + sum` per lane, exact (integers in f64 lanes, below 2^53).
-    unsafe fn add_exact(total: Self::Exact, sum: Self::Integers) -> Self::Exact;
-    /// `128 high + low` per lane, exact.
-    unsafe fn exact_digits(high: Self::Integers, low: Self::Integers) -> Self::Exact;
-    /// The exact integers rounded to f32 (to nearest), times `scale`: two roundings.
-    unsafe fn round_scaled(total: Self::Exact, scale: f32) -> Self::Floats;
-    unsafe fn load(from: *const f32) -> Self::Floats;
-    unsafe fn store(to: *mut f32, value: Self::Floats);
-    unsafe fn mul(a: Self::Floats, b: Self::Floats) -> Self::Floats;
-    unsafe fn add(a: Self::Floats, b: Self::Floats) -> Self::Floats;
-}
-
-/// Lanes whose [`dot_quads`](Int8Lanes::dot_quads) is exact for activations in 0..=255
-/// (whole bytes), not only 0..=127, and what the kernels of whole bytes need beside it: the
-/// 8-bit codes' tiles are written for these lanes only.
-///
-/// # Safety
-/// As for [`Int8Lanes`].
-pub(crate) unsafe trait WholeByteLanes: Int8Lanes {
-    /// Every byte plus 128, read as unsigned (`byte ^ 0x80`): signed weights as the
-    /// unsigned side of [`dot_quads`](Int8Lanes::dot_quads).
-    unsafe fn offset_bytes(bytes: Self::Integers) -> Self::Integers;
-    /// `value` in every i32 lane.
-    unsafe fn splat_integers(value: i32) -> Self::Integers;
-    /// i32 sums rounded to f32 (to nearest), times `scale`: the bits of
-    /// [`round_scaled`](Int8Lanes::round_scaled) of the same sums (an i32 is exact in f64),
-    /// in one conversion where that takes five.
-    unsafe fn integers_scaled(sums: Self::Integers, scale: f32) -> Self::Floats;
-}
+use crate::kernels::simd::int8::{Int8Lanes, SignedByteLanes, WholeByteLanes};
 
 /// AVX2: eight channels a YMM vector. `vpmaddubsw` multiplies the quad's four activations
 /// (u8) by the four weights (i8) and adds adjacent pairs into i16 lanes, `vpmaddwd` by ones
@@ -377,9 +295,9 @@ unsafe impl Int8Lanes for VnniZmm {
     }
 }
 
-// SAFETY: as for its `Int8Lanes`; `vpdpbusd` adds its four u8 x i8 products into the i32
-// lane exactly.
-unsafe impl WholeByteLanes for VnniZmm {
+// SAFETY: as for its `Int8Lanes`; the weights offset by 128 are the unsigned side.
+unsafe impl SignedByteLanes for VnniZmm {
+    const WEIGHT_OFFSET: i32 = 128;
     #[inline(always)]
     unsafe fn offset_bytes(bytes: __m512i) -> __m512i {
         // SAFETY: the caller runs on AVX-512F (trait contract).
@@ -397,6 +315,9 @@ unsafe impl WholeByteLanes for VnniZmm {
         unsafe { _mm512_mul_ps(_mm512_cvtepi32_ps(sums), _mm512_set1_ps(scale)) }
     }
 }
+
+// SAFETY: `vpdpbusd` adds its four u8 x i8 products into the i32 lane exactly.
+unsafe impl WholeByteLanes for VnniZmm {}
 
 /// The eight i32 lanes as f64, low four then high four (exact).
 ///

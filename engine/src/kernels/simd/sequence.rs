@@ -11,7 +11,7 @@
 //!
 //! The int8 convolutions of the U-Net take int8 activations: `sequence_int8`.
 
-use super::lanes::{Lanes, Ymm, Zmm};
+use super::lanes::Lanes;
 use super::{prefetch_lines, prefetch_lines_into_l2};
 use crate::kernels::{Accumulate, ConvShape};
 
@@ -192,7 +192,7 @@ const STREAMING_POSITIONS: usize = 16;
 /// # Panics
 /// If a slice is shorter than `sequence` needs (the model code never passes such slices).
 #[inline(always)]
-unsafe fn convolve_f32<L: Lanes>(
+pub(crate) unsafe fn convolve_f32<L: Lanes>(
     sequence: &Sequence,
     input: &[f32],
     weight: &[f32],
@@ -579,7 +579,12 @@ fn narrow_channels(
 /// # Panics
 /// If the lengths disagree (the model code never passes such slices).
 #[inline(always)]
-unsafe fn matvec<L: Lanes>(weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
+pub(crate) unsafe fn matvec<L: Lanes>(
+    weight: &[f32],
+    input: &[f32],
+    base: &[f32],
+    output: &mut [f32],
+) {
     let cols = input.len();
     assert_eq!(weight.len(), output.len() * cols);
     assert_eq!(base.len(), output.len());
@@ -630,17 +635,19 @@ unsafe fn matvec<L: Lanes>(weight: &[f32], input: &[f32], base: &[f32], output: 
     }
 }
 
-/// The kernels of this module compiled for one backend (AVX2 + FMA on YMM, or AVX-512F on
-/// ZMM: the same body), and the [`Kernels`](crate::kernels::Kernels) methods built on them,
-/// which both backends call as they are.
+/// The convolutions of this module compiled for one backend (AVX2 + FMA on YMM, AVX-512F on
+/// ZMM, NEON: the same body), as the [`Kernels::conv`](crate::kernels::Kernels::conv) of 1-D
+/// shapes. ([`matvec`] sums in lane order, so each architecture compiles it for one vector
+/// width only: eight lanes.) `$lanes` names the [`Lanes`] type as seen from inside
+/// the generated module.
 macro_rules! backend {
     ($module:ident, $lanes:ty, $features:literal) => {
         pub(crate) mod $module {
-            use super::Sequence;
-            use crate::kernels::scalar::assert_conv_lengths;
-            use crate::kernels::{Accumulate, ConvShape};
+            use $crate::kernels::scalar::assert_conv_lengths;
+            use $crate::kernels::simd::sequence::Sequence;
+            use $crate::kernels::{Accumulate, ConvShape};
 
-            /// [`convolve_f32`](super::convolve_f32) on this backend's vectors.
+            /// `convolve_f32` on this backend's vectors.
             ///
             /// # Safety
             /// The CPU supports the backend's features.
@@ -655,23 +662,10 @@ macro_rules! backend {
             ) {
                 // SAFETY: this function's contract is the body's.
                 unsafe {
-                    super::convolve_f32::<$lanes>(sequence, input, weight, bias, output, accumulate)
+                    $crate::kernels::simd::sequence::convolve_f32::<$lanes>(
+                        sequence, input, weight, bias, output, accumulate,
+                    )
                 }
-            }
-
-            /// [`matvec`](super::matvec) on this backend's vectors: `Kernels::matvec`.
-            ///
-            /// # Safety
-            /// The CPU supports the backend's features.
-            #[target_feature(enable = $features)]
-            pub(crate) unsafe fn matvec(
-                weight: &[f32],
-                input: &[f32],
-                base: &[f32],
-                output: &mut [f32],
-            ) {
-                // SAFETY: this function's contract is the body's.
-                unsafe { super::matvec::<$lanes>(weight, input, base, output) }
             }
 
             /// `Kernels::conv` for 1-D shapes; `None` (nothing done) for 2-D ones.
@@ -694,5 +688,4 @@ macro_rules! backend {
     };
 }
 
-backend!(avx2, super::Ymm, "avx2,fma");
-backend!(avx512, super::Zmm, "avx512f,avx512bw,avx512vl");
+pub(crate) use backend;

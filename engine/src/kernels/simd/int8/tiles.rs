@@ -2,9 +2,9 @@
 //! vectors of output channels, their exact sums held in registers across the whole kernel
 //! (the parent module describes the scheme).
 
-use super::lanes::{Int8Lanes, WholeByteLanes};
+use super::lanes::{Int8Lanes, SignedByteLanes, WholeByteLanes};
 use crate::kernels::scalar::{CodeSums, conv_int8_pixel, conv_int8_pixels};
-use crate::kernels::x86_64::prefetch_lines_into_l2;
+use crate::kernels::simd::prefetch_lines_into_l2;
 use crate::kernels::{
     Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, MAX_DIGIT_CHANNELS,
     QUAD, SignedByteRows, int8_quad_stride,
@@ -382,12 +382,12 @@ impl<L: Int8Lanes> TileInput<L> for CodeRows<'_> {
     }
 }
 
-impl<L: WholeByteLanes> TileInput<L> for SignedByteRows<'_> {
-    /// The weights offset by 128 (unsigned) times the signed codes, summed over the whole
-    /// kernel in i32 (exact: at most [`MAX_BYTE_TERMS`](crate::kernels::MAX_BYTE_TERMS)
-    /// products of 255 x 127), less 128 times the codes the pixel read (its rows' sums):
-    /// `sum (w + 128) c - 128 sum c`, the exact `sum w c`, in half the products of widened
-    /// pairs.
+impl<L: SignedByteLanes> TileInput<L> for SignedByteRows<'_> {
+    /// The weights offset by `WEIGHT_OFFSET` (128: unsigned; or none) times the signed
+    /// codes, summed over the whole kernel in i32 (exact: at most
+    /// [`MAX_BYTE_TERMS`](crate::kernels::MAX_BYTE_TERMS) products of 255 x 127), less the
+    /// offset times the codes the pixel read (its rows' sums): `sum (w + 128) c - 128 sum c`,
+    /// the exact `sum w c`, in half the products of widened pairs.
     #[inline(always)]
     unsafe fn tile_totals<const P: usize, const V: usize>(
         &self,
@@ -441,7 +441,7 @@ impl<L: WholeByteLanes> TileInput<L> for SignedByteRows<'_> {
         for pixel in 0..P {
             // At most 127 x MAX_BYTE_TERMS x 128 in magnitude: no overflow.
             // SAFETY: the caller runs on `L`'s CPU.
-            let offset = unsafe { L::splat_integers(-128 * codes_read[pixel]) };
+            let offset = unsafe { L::splat_integers(-L::WEIGHT_OFFSET * codes_read[pixel]) };
             for vector in 0..V {
                 // SAFETY: the caller runs on `L`'s CPU.
                 totals[pixel][vector] = unsafe {

@@ -1,0 +1,351 @@
+//! The three aarch64 backends: the same f32 kernels (NEON, eight lanes as AVX2), the int8
+//! tiles on each one's dot product.
+
+use super::lanes::Neon8;
+use super::{int8, sequence};
+use crate::kernels::scalar::{
+    Scalar, assert_byte_lengths, assert_conv_lengths, assert_conv_pixel_lengths,
+    assert_signed_byte_lengths, conv_int8_bytes,
+};
+use crate::kernels::simd::f32_tile;
+use crate::kernels::simd::int8::{
+    byte_tiles_apply, checked_conv, checked_conv_codes, checked_conv_pixel, conv,
+};
+use crate::kernels::simd::sequence::Sequence;
+use crate::kernels::{
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, NarrowForm, SignedByteRows,
+};
+
+/// Output pixels and channels of an f32 tile: AVX2's (6 x 16: 24 of the 32 registers hold
+/// sums), so the same layers take the tiles and the others the scalar reference, as there.
+const PIXELS: usize = 6;
+const CHANNELS: usize = 16;
+
+/// NEON kernels (every aarch64 application core). Reachable only through
+/// [`Neon::detect`].
+#[derive(Debug)]
+pub struct Neon {
+    _checked: (),
+}
+
+/// NEON with the dot-product extension (`sdot`). Reachable only through [`Dot::detect`].
+#[derive(Debug)]
+pub struct Dot {
+    _checked: (),
+}
+
+/// NEON with the dot product and I8MM (`usdot` on whole bytes). Reachable only through
+/// [`I8mm::detect`].
+#[derive(Debug)]
+pub struct I8mm {
+    _checked: (),
+}
+
+static NEON: Neon = Neon { _checked: () };
+static DOT: Dot = Dot { _checked: () };
+static I8MM: I8mm = I8mm { _checked: () };
+
+impl Neon {
+    /// `None` on a target built without NEON (`aarch64-unknown-none-softfloat`).
+    pub fn detect() -> Option<&'static Neon> {
+        cfg!(target_feature = "neon").then_some(&NEON)
+    }
+}
+
+impl Dot {
+    /// `None` unless the CPU has the dot-product extension.
+    pub fn detect() -> Option<&'static Dot> {
+        (Neon::detect().is_some() && super::has_dotprod()).then_some(&DOT)
+    }
+}
+
+impl I8mm {
+    /// `None` unless the CPU has I8MM and the dot product.
+    pub fn detect() -> Option<&'static I8mm> {
+        (Neon::detect().is_some() && super::has_i8mm()).then_some(&I8MM)
+    }
+}
+
+/// [`f32_tile::conv`] compiled for NEON.
+///
+/// # Safety
+/// NEON; the slices have the lengths `shape` implies; `out_channels` is a multiple of 16.
+#[target_feature(enable = "neon")]
+unsafe fn conv_tiles(
+    shape: &ConvShape,
+    parameters: (&[f32], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    // SAFETY: this function's contract is the body's.
+    unsafe { f32_tile::conv::<Neon8, PIXELS, 2>(shape, parameters, output, accumulate) }
+}
+
+/// [`f32_tile::conv_pixel`] compiled for NEON.
+///
+/// # Safety
+/// As for [`conv_tiles`]; the pixel is in the output and `output` holds its channels.
+#[target_feature(enable = "neon")]
+unsafe fn conv_one_pixel(
+    shape: &ConvShape,
+    parameters: (&[f32], &[f32], &[f32]),
+    pixel: (usize, usize),
+    output: &mut [f32],
+) {
+    // SAFETY: this function's contract is the body's.
+    unsafe { f32_tile::conv_pixel::<Neon8>(shape, parameters, pixel, output) }
+}
+
+/// `Kernels::conv` on NEON: AVX2's choice of path for each shape.
+fn conv_f32(
+    shape: &ConvShape,
+    (input, weight, bias): (&[f32], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    // SAFETY: the backends exist only on NEON targets.
+    if unsafe { sequence::neon::conv(shape, (input, weight, bias), output, accumulate) }.is_some() {
+        return;
+    }
+    assert_conv_lengths(shape, (input, weight, bias), output.len());
+    if !shape.out_channels.is_multiple_of(CHANNELS) {
+        return Scalar.conv(shape, input, weight, bias, output, accumulate);
+    }
+    // SAFETY: NEON; the asserts above fix the slice lengths; out_channels is a multiple of 16.
+    unsafe { conv_tiles(shape, (input, weight, bias), output, accumulate) }
+}
+
+/// `Kernels::conv_pixel` on NEON.
+fn conv_pixel_f32(
+    shape: &ConvShape,
+    (input, weight, bias): (&[f32], &[f32], &[f32]),
+    (out_y, out_x): (usize, usize),
+    output: &mut [f32],
+) {
+    assert_conv_pixel_lengths(shape, (input, weight, bias), (out_y, out_x), output.len());
+    if Sequence::from_shape(shape).is_some() || !shape.out_channels.is_multiple_of(CHANNELS) {
+        return Scalar.conv_pixel(shape, input, weight, bias, (out_y, out_x), output);
+    }
+    // SAFETY: NEON; the pixel is in the output (asserted) and `output` holds its channels.
+    unsafe { conv_one_pixel(shape, (input, weight, bias), (out_y, out_x), output) }
+}
+
+/// [`conv`] on whole bytes with `usdot`, the lengths checked, shapes the tiles do not take
+/// on the scalar reference.
+///
+/// # Safety
+/// The CPU has I8MM.
+#[target_feature(enable = "neon,dotprod,i8mm")]
+unsafe fn checked_conv_bytes(
+    shape: &ConvShape,
+    input: &ByteRows<'_>,
+    parameters: (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    assert_byte_lengths(shape, input, parameters, output.len());
+    if !byte_tiles_apply(shape) {
+        return conv_int8_bytes(shape, input, parameters, output, accumulate);
+    }
+    const TILE: (usize, usize) = int8::BYTES_TILE;
+    // SAFETY: I8MM (this function's contract); the lengths were asserted and the quads
+    // checked just above.
+    unsafe {
+        conv::<int8::Bytes, ByteRows<'_>, { TILE.0 }, { TILE.1 }>(
+            shape, input, parameters, output, accumulate,
+        )
+    }
+}
+
+/// The signed narrow codes with `sdot` (signed by signed: the weights as they are), the
+/// lengths checked. `usdot` would need the weights offset by 128 and the offset's share taken
+/// back out: the same sums, more work.
+///
+/// # Safety
+/// The CPU has the dot-product extension.
+#[target_feature(enable = "neon,dotprod")]
+unsafe fn checked_conv_signed_bytes(
+    shape: &ConvShape,
+    input: &SignedByteRows<'_>,
+    parameters: (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    assert_signed_byte_lengths(shape, input, parameters, output.len());
+    const TILE: (usize, usize) = int8::BYTES_TILE;
+    // SAFETY: the dot product (this function's contract); the lengths were asserted just
+    // above.
+    unsafe {
+        conv::<int8::SignedBytes, SignedByteRows<'_>, { TILE.0 }, { TILE.1 }>(
+            shape, input, parameters, output, accumulate,
+        )
+    }
+}
+
+/// The [`Kernels`] methods every aarch64 backend implements alike, the int8 ones on the
+/// tiles of `int8::$module`. Expanded only inside the `impl Kernels` of a backend type that
+/// exists once its features were detected, which every `unsafe` call relies on.
+macro_rules! shared_kernels {
+    ($module:ident) => {
+        fn conv(
+            &self,
+            shape: &ConvShape,
+            input: &[f32],
+            weight: &[f32],
+            bias: &[f32],
+            output: &mut [f32],
+            accumulate: Accumulate,
+        ) {
+            conv_f32(shape, (input, weight, bias), output, accumulate)
+        }
+
+        fn conv_pixel(
+            &self,
+            shape: &ConvShape,
+            input: &[f32],
+            weight: &[f32],
+            bias: &[f32],
+            pixel: (usize, usize),
+            output: &mut [f32],
+        ) {
+            conv_pixel_f32(shape, (input, weight, bias), pixel, output)
+        }
+
+        fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
+            // SAFETY: the backends exist only on NEON targets.
+            unsafe { sequence::matvec(weight, input, base, output) }
+        }
+
+        fn conv_int8(
+            &self,
+            shape: &ConvShape,
+            input: &DigitRows<'_>,
+            weight: &[i8],
+            weight_scales: &[f32],
+            bias: &[f32],
+            output: &mut [f32],
+            accumulate: Accumulate,
+        ) {
+            let parameters = (weight, weight_scales, bias);
+            let kernel = int8::$module::conv;
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { checked_conv(kernel, shape, input, parameters, output, accumulate) }
+        }
+
+        fn conv_int8_pixel(
+            &self,
+            shape: &ConvShape,
+            input: &DigitRows<'_>,
+            weight: &[i8],
+            weight_scales: &[f32],
+            bias: &[f32],
+            pixel: (usize, usize),
+            output: &mut [f32],
+        ) {
+            let parameters = (weight, weight_scales, bias);
+            let kernel = int8::$module::conv_pixel;
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { checked_conv_pixel(kernel, shape, input, parameters, pixel, output) }
+        }
+
+        fn conv_int8_codes(
+            &self,
+            shape: &ConvShape,
+            input: &CodeRows<'_>,
+            weight: &[i8],
+            weight_scales: &[f32],
+            bias: &[f32],
+            output: &mut [f32],
+            accumulate: Accumulate,
+        ) {
+            let parameters = (weight, weight_scales, bias);
+            let kernel = int8::$module::conv_codes;
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { checked_conv_codes(kernel, shape, input, parameters, output, accumulate) }
+        }
+
+        fn matvec_int8_codes(
+            &self,
+            weight: &[i8],
+            row_scales: &[f32],
+            input: &CodeRows<'_>,
+            base: &[f32],
+            output: &mut [f32],
+        ) {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { int8::$module::matvec_codes(weight, row_scales, input, base, output) }
+        }
+    };
+}
+
+impl Kernels for Neon {
+    fn name(&self) -> &'static str {
+        "neon"
+    }
+
+    /// The 16-bit codes' pair products (`smull`) take the U-Net's narrow codes widened once.
+    fn multiplies_signed_bytes(&self) -> bool {
+        false
+    }
+
+    shared_kernels!(neon);
+}
+
+/// `Kernels::conv_int8_signed_bytes` on `sdot`, for the backends that have it.
+macro_rules! signed_bytes_on_sdot {
+    () => {
+        fn conv_int8_signed_bytes(
+            &self,
+            shape: &ConvShape,
+            input: &SignedByteRows<'_>,
+            weight: &[i8],
+            weight_scales: &[f32],
+            bias: &[f32],
+            output: &mut [f32],
+            accumulate: Accumulate,
+        ) {
+            let parameters = (weight, weight_scales, bias);
+            // SAFETY: `self` exists only when the dot product was detected.
+            unsafe { checked_conv_signed_bytes(shape, input, parameters, output, accumulate) }
+        }
+    };
+}
+
+impl Kernels for Dot {
+    fn name(&self) -> &'static str {
+        "dot"
+    }
+
+    signed_bytes_on_sdot!();
+    shared_kernels!(dot);
+}
+
+impl Kernels for I8mm {
+    fn name(&self) -> &'static str {
+        "i8mm"
+    }
+
+    fn conv_int8_bytes(
+        &self,
+        shape: &ConvShape,
+        input: &ByteRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let parameters = (weight, weight_scales, bias);
+        // SAFETY: `self` exists only when I8MM was detected.
+        unsafe { checked_conv_bytes(shape, input, parameters, output, accumulate) }
+    }
+
+    signed_bytes_on_sdot!();
+
+    /// `usdot` multiplies whole bytes.
+    fn narrow_form(&self) -> NarrowForm {
+        NarrowForm::Bytes
+    }
+
+    shared_kernels!(i8mm);
+}
