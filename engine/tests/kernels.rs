@@ -1843,14 +1843,14 @@ fn byte_tiles_stop_at_the_exact_sum_bound() {
 }
 
 /// The narrow forms each backend asks for: whole bytes where its byte products take 0..=255
-/// (the reference, VNNI, the AMX tiles, I8MM's `usdot`), digit planes otherwise (AVX2's
-/// `vpmaddubsw` saturates; NEON's and `sdot`'s products are signed). A backend quietly falling back to the digits would still pass the
+/// (the reference, VNNI, the AMX tiles, I8MM's `usdot`, `sdot` on centred bytes), digit
+/// planes otherwise (AVX2's `vpmaddubsw` saturates; NEON's widening products gain nothing). A backend quietly falling back to the digits would still pass the
 /// bit-identity tests while giving up the narrow path's speed.
 #[test]
 fn backends_read_narrow_codes_in_their_fastest_form() {
     for (name, kernels) in backends() {
         let expected = match name {
-            "scalar" | "avx512" | "amx" | "i8mm" => NarrowForm::Bytes,
+            "scalar" | "avx512" | "amx" | "dot" | "i8mm" => NarrowForm::Bytes,
             _ => NarrowForm::Digits,
         };
         assert_eq!(kernels.narrow_form(), expected, "{name}");

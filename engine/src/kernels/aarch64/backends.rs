@@ -263,18 +263,6 @@ macro_rules! shared_kernels {
             // SAFETY: `self` exists only on a CPU with the backend's features.
             unsafe { checked_conv_codes(kernel, shape, input, parameters, output, accumulate) }
         }
-
-        fn matvec_int8_codes(
-            &self,
-            weight: &[i8],
-            row_scales: &[f32],
-            input: &CodeRows<'_>,
-            base: &[f32],
-            output: &mut [f32],
-        ) {
-            // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { int8::$module::matvec_codes(weight, row_scales, input, base, output) }
-        }
     };
 }
 
@@ -286,6 +274,18 @@ impl Kernels for Neon {
     /// The 16-bit codes' pair products (`smull`) take the U-Net's narrow codes widened once.
     fn multiplies_signed_bytes(&self) -> bool {
         false
+    }
+
+    fn matvec_int8_codes(
+        &self,
+        weight: &[i8],
+        row_scales: &[f32],
+        input: &CodeRows<'_>,
+        base: &[f32],
+        output: &mut [f32],
+    ) {
+        // SAFETY: `self` exists only on NEON targets.
+        unsafe { int8::neon::matvec_codes(weight, row_scales, input, base, output) }
     }
 
     shared_kernels!(neon);
@@ -311,12 +311,55 @@ macro_rules! signed_bytes_on_sdot {
     };
 }
 
+/// `Kernels::matvec_int8_codes` on `sdot` ([`super::matvec`]), for the backends that
+/// have it; the shared kernel of `int8::$module` for rows too wide for it.
+macro_rules! matvec_on_sdot {
+    ($module:ident) => {
+        fn matvec_int8_codes(
+            &self,
+            weight: &[i8],
+            row_scales: &[f32],
+            input: &CodeRows<'_>,
+            base: &[f32],
+            output: &mut [f32],
+        ) {
+            // SAFETY: `self` exists only when the dot product was detected.
+            unsafe {
+                if super::matvec::matvec_codes(weight, row_scales, input, base, output).is_none() {
+                    int8::$module::matvec_codes(weight, row_scales, input, base, output)
+                }
+            }
+        }
+    };
+}
+
 impl Kernels for Dot {
     fn name(&self) -> &'static str {
         "dot"
     }
 
+    fn conv_int8_bytes(
+        &self,
+        shape: &ConvShape,
+        input: &ByteRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let parameters = (weight, weight_scales, bias);
+        // SAFETY: `self` exists only when the dot product was detected.
+        unsafe { super::bytes::checked_conv_bytes(shape, input, parameters, output, accumulate) }
+    }
+
+    /// `sdot` takes whole bytes centred ([`super::bytes`]).
+    fn narrow_form(&self) -> NarrowForm {
+        NarrowForm::Bytes
+    }
+
     signed_bytes_on_sdot!();
+    matvec_on_sdot!(dot);
     shared_kernels!(dot);
 }
 
@@ -341,6 +384,7 @@ impl Kernels for I8mm {
     }
 
     signed_bytes_on_sdot!();
+    matvec_on_sdot!(i8mm);
 
     /// `usdot` multiplies whole bytes.
     fn narrow_form(&self) -> NarrowForm {

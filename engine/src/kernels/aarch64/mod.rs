@@ -9,8 +9,10 @@
 //! operations are the portable code, which the compiler vectorizes for NEON as it is.
 
 mod backends;
+mod bytes;
 mod int8_lanes;
 mod lanes;
+mod matvec;
 
 pub use backends::{Dot, I8mm, Neon};
 

@@ -45,8 +45,12 @@ use crate::kernels::scalar::{
     conv_int8_pixels,
 };
 use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows};
+#[cfg(target_arch = "aarch64")]
+pub(crate) use lanes::CenteredByteLanes;
 pub(crate) use lanes::{Int8Lanes, SignedByteLanes, WholeByteLanes};
 pub(crate) use matvec::matvec_codes;
+#[cfg(target_arch = "aarch64")]
+pub(crate) use tiles::CenteredBytes;
 pub(crate) use tiles::{byte_tiles_apply, conv, conv_pixel, tiles_apply};
 
 /// A backend's [`conv`] wrapper.

@@ -95,3 +95,18 @@ pub(crate) unsafe trait SignedByteLanes: Int8Lanes {
 /// # Safety
 /// As for [`Int8Lanes`], and the products of whole bytes are exact.
 pub(crate) unsafe trait WholeByteLanes: SignedByteLanes {}
+
+/// Lanes that run the tiles of whole bytes on a signed-by-signed dot product (`sdot`): each
+/// byte centred (`byte - 128`), the weights' share `128 sum w` added back per channel
+/// ([`CenteredBytes`](super::CenteredBytes)). Only aarch64 has such lanes.
+///
+/// # Safety
+/// As for [`Int8Lanes`].
+#[cfg(target_arch = "aarch64")]
+pub(crate) unsafe trait CenteredByteLanes: SignedByteLanes {
+    /// Four bytes, each centred (`byte ^ 0x80`: `byte - 128` read as i8), repeated in every
+    /// lane.
+    unsafe fn broadcast_centred_quad(from: *const i8) -> Self::Integers;
+    /// `WIDTH` i32 values from `from`.
+    unsafe fn load_integers(from: *const i32) -> Self::Integers;
+}

@@ -2,6 +2,8 @@
 //! vectors of output channels, their exact sums held in registers across the whole kernel
 //! (the parent module describes the scheme).
 
+#[cfg(target_arch = "aarch64")]
+use super::lanes::CenteredByteLanes;
 use super::lanes::{Int8Lanes, SignedByteLanes, WholeByteLanes};
 use crate::kernels::scalar::{CodeSums, conv_int8_pixel, conv_int8_pixels};
 use crate::kernels::simd::prefetch_lines_into_l2;
@@ -282,6 +284,106 @@ impl<L: WholeByteLanes> TileInput<L> for ByteRows<'_> {
             }
         }
         totals
+    }
+}
+
+/// Whole bytes for lanes whose products are signed by signed (`sdot`): each byte is read
+/// centred, `byte - 128`, at every tap, the padding's zero bytes included (so every pixel
+/// reads every tap), and `128 sum w` over the whole kernel, the same for every pixel, is
+/// added back: `sum (b - 128) w + 128 sum w`, the exact `sum b w`, in one plane where the
+/// digits take two.
+#[cfg(target_arch = "aarch64")]
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct CenteredBytes<'a> {
+    pub bytes: ByteRows<'a>,
+    /// `128 sum w` over every tap and input channel, one per output channel.
+    pub weight_shares: &'a [i32],
+}
+
+#[cfg(target_arch = "aarch64")]
+impl CodeSums for CenteredBytes<'_> {
+    fn code_sums(
+        &self,
+        shape: &ConvShape,
+        weight: &[i8],
+        row_tap: (usize, usize),
+        block: usize,
+        width: usize,
+    ) -> [i32; INT8_CHANNEL_BLOCK] {
+        self.bytes.code_sums(shape, weight, row_tap, block, width)
+    }
+
+    fn scale(&self) -> f32 {
+        self.bytes.scale
+    }
+}
+
+#[cfg(target_arch = "aarch64")]
+impl<L: CenteredByteLanes> TileInput<L> for CenteredBytes<'_> {
+    /// The centred bytes' sums over every tap in i32 (exact: at most
+    /// [`MAX_BYTE_TERMS`](crate::kernels::MAX_BYTE_TERMS) products of 128 x 128), plus the
+    /// weights' share.
+    #[inline(always)]
+    unsafe fn tile_totals<const P: usize, const V: usize>(
+        &self,
+        shape: &ConvShape,
+        weight: &[i8],
+        pixels: &PixelTile<P>,
+        channel: usize,
+    ) -> [[L::Floats; V]; P] {
+        let in_channels = shape.in_channels;
+        let quads = in_channels / QUAD;
+        let quad_stride = int8_quad_stride(shape.out_channels, channel);
+        let bytes: &[i8] = bytemuck::cast_slice(self.bytes.bytes);
+        // SAFETY: the caller runs on `L`'s CPU.
+        let mut sums = [[unsafe { L::zero_integers() }; V]; P];
+        for kernel_y in 0..shape.kernel_height {
+            for kernel_x in 0..shape.kernel_width {
+                // Padding reads the zero row, centred to -128 like any zero byte.
+                let sources = pixels.rows(shape, kernel_y, kernel_x).map(|row| match row {
+                    Some(row) => bytes[row * in_channels..][..in_channels].as_ptr(),
+                    None => ZERO_ROW.as_ptr().cast(),
+                });
+                let tap = kernel_y * shape.kernel_width + kernel_x;
+                let weights = weight[shape.int8_index(tap, 0, channel)..].as_ptr();
+                // SAFETY: every source is an input row of `quads` whole quads
+                // (`byte_tiles_apply`) or the zero row, as long; the tap's quads of the
+                // block's channels are inside `weight` (the caller's promise).
+                unsafe {
+                    for quad in 0..quads {
+                        let row = weights.add(quad * quad_stride);
+                        let vectors: [L::Integers; V] = core::array::from_fn(|vector| {
+                            L::load_weights(row.add(vector * L::WIDTH * QUAD))
+                        });
+                        for pixel in 0..P {
+                            let centred =
+                                L::broadcast_centred_quad(sources[pixel].add(quad * QUAD));
+                            for vector in 0..V {
+                                sums[pixel][vector] =
+                                    L::dot_quads(sums[pixel][vector], centred, vectors[vector]);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        // SAFETY: the caller runs on `L`'s CPU; the block's `V WIDTH` channels from
+        // `channel` are inside the output, so inside `weight_shares`.
+        unsafe {
+            let shares: [L::Integers; V] = core::array::from_fn(|vector| {
+                L::load_integers(
+                    self.weight_shares[channel + vector * L::WIDTH..][..L::WIDTH].as_ptr(),
+                )
+            });
+            let mut totals = [[L::zero_floats(); V]; P];
+            for pixel in 0..P {
+                for vector in 0..V {
+                    let sum = L::add_integers(sums[pixel][vector], shares[vector]);
+                    totals[pixel][vector] = L::integers_scaled(sum, self.bytes.scale);
+                }
+            }
+            totals
+        }
     }
 }
 
