@@ -4,13 +4,14 @@
 //!
 //! Each throughput loop keeps [`CHAINS`] (AVX2) or [`CHAINS_AVX512`] independent
 //! accumulators, more than the FMA or dot-product latency times the number of ports, so the loop is bound by issue rate, not by
-//! a dependency. Operands go through [`black_box`] so the compiler cannot fold the
+//! a dependency. Operands go through `black_box` so the compiler cannot fold the
 //! multiplications away, and every loop returns its accumulators, which the tests compare
 //! with the exact expected sum: a loop that the optimiser emptied would fail them.
 //!
 //! All loops exist on x86-64 only; [`available`] lists the ones this CPU can run (std's
 //! CPUID-backed `is_x86_feature_detected!`).
 
+#[cfg(target_arch = "x86_64")]
 use std::hint::black_box;
 
 /// Independent accumulator registers per AVX2 loop (16 vector registers, some hold operands).
@@ -31,6 +32,7 @@ pub struct Throughput {
 
 /// The throughput loops this CPU supports.
 pub fn available() -> Vec<Throughput> {
+    #[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
     let mut loops = Vec::new();
     #[cfg(target_arch = "x86_64")]
     {
@@ -108,6 +110,7 @@ pub struct Bandwidth {
 
 /// The bandwidth loops this CPU supports (the portable one always).
 pub fn bandwidth_loops() -> Vec<Bandwidth> {
+    #[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
     let mut loops = vec![Bandwidth {
         name: "portable (compiler's vectorisation)",
         run: portable_sum,
@@ -179,10 +182,12 @@ pub fn dependent_adds(iterations: u64) -> Option<u64> {
 }
 
 /// Operands for the throughput loops: ones the compiler cannot see.
+#[cfg(target_arch = "x86_64")]
 fn opaque_one_f32() -> f32 {
     black_box(1.0)
 }
 
+#[cfg(target_arch = "x86_64")]
 fn opaque_one_i8() -> i8 {
     black_box(1)
 }

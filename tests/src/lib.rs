@@ -135,8 +135,6 @@ impl Fixture {
     }
 }
 
-/// The kernel backends this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2,avx512` (as CI sets it)
-/// turns a missing backend into a failure instead of a silent skip.
 /// A camera 0.8 m in front of the scene, looking along +z, focal length the image width:
 /// the synthetic tests' view (anchors near the image centre).
 pub fn frontal_camera(config: &ModelConfig) -> Camera {
@@ -155,9 +153,11 @@ pub fn frontal_camera(config: &ModelConfig) -> Camera {
     Camera::new(&k, &t).expect("a valid camera")
 }
 
+/// The kernel backends this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2,avx512` (as CI sets it)
+/// turns a missing backend into a failure instead of a silent skip.
 pub fn available_backends() -> Vec<Backend> {
-    let mut found = vec![Backend::Scalar];
-    for backend in [Backend::Avx2, Backend::Avx512, Backend::Amx] {
+    let mut found = Vec::new();
+    for backend in Backend::ALL.into_iter().filter(|&b| b != Backend::Auto) {
         if scdp_engine::kernels::select(backend).is_some() {
             found.push(backend);
         }

@@ -82,6 +82,12 @@ pub fn report(bytes: &[u8]) -> Result<String> {
         mebibytes(plan.features * 4),
         mebibytes(plan.scratch * 4)
     )?;
+    writeln!(
+        out,
+        "kernels on this CPU (`run --kernels NAME`): {} (auto: {})",
+        crate::run::available_kernels().join(", "),
+        crate::run::select_kernels("auto")?.name()
+    )?;
     writeln!(out, "\n[config]\n{}", config_to_toml(config))?;
     let entries = (0..file.tensor_count())
         .map(|index| file.entry(index))

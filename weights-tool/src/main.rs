@@ -67,6 +67,10 @@ struct RunArgs {
     /// Run the inference N more times after a warm-up and print median and p99 per stage.
     #[arg(long, value_name = "N")]
     bench: Option<usize>,
+    /// Kernel backend: `auto` (the fastest this CPU runs) or one by name (scalar, avx2,
+    /// avx512, amx, neon, dot, i8mm); `inspect` lists this CPU's.
+    #[arg(long, value_name = "NAME", default_value = "auto")]
+    kernels: String,
 }
 
 #[derive(clap::Args)]
@@ -541,7 +545,8 @@ fn milliseconds(duration: Duration) -> f64 {
 fn run(args: &RunArgs) -> anyhow::Result<()> {
     use weights_tool::run::{RunInputs, Runner, bench, draw_anchors, write_outputs};
     let bytes = read_file(&args.model)?;
-    let mut runner = Runner::new(&bytes).with_context(|| args.model.display().to_string())?;
+    let mut runner = Runner::with_kernels(&bytes, &args.kernels)
+        .with_context(|| args.model.display().to_string())?;
     let config =
         *scdp_engine::Model::from_bytes(weights_tool::writer::aligned_copy(&bytes).as_slice())
             .map_err(|error| anyhow::anyhow!("{}: {error}", args.model.display()))?
@@ -549,6 +554,7 @@ fn run(args: &RunArgs) -> anyhow::Result<()> {
     let inputs = RunInputs::load(&args.inputs, &config)?;
     let (outputs, times) = runner.run(&inputs, args.seed)?;
     let action_dim = config.action_dim as usize;
+    println!("kernels: {}", runner.kernels_name());
     println!(
         "action ({} steps x {action_dim}), encode {:.1} ms for {} frames, denoise {:.1} ms:",
         config.n_action_steps,

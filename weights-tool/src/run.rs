@@ -7,7 +7,10 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, ensure};
 use safetensors::{Dtype, SafeTensors};
-use scdp_engine::{ArenaPlan, Camera, Model, ModelConfig, Noise, Policy, Prefix, PrefixMode};
+use scdp_engine::kernels::{self, Kernels};
+use scdp_engine::{
+    ArenaPlan, Backend, Camera, Model, ModelConfig, Noise, Policy, Prefix, PrefixMode,
+};
 
 use crate::writer::AlignedBytes;
 
@@ -169,19 +172,53 @@ pub struct StageTimes {
     pub denoise: Duration,
 }
 
+/// The kernel backends this CPU runs, fastest first: what `--kernels` accepts besides `auto`.
+pub fn available_kernels() -> Vec<&'static str> {
+    kernels::available().map(|kernels| kernels.name()).collect()
+}
+
+/// The kernels named `name` (`auto` for the fastest), or an error listing those this CPU
+/// runs.
+pub fn select_kernels(name: &str) -> Result<&'static dyn Kernels> {
+    let available = available_kernels().join(", ");
+    let backend = Backend::from_name(name)
+        .with_context(|| format!("unknown kernels {name:?}; this CPU runs: auto, {available}"))?;
+    kernels::select(backend).with_context(|| {
+        format!("this CPU cannot run the {name} kernels; it runs: auto, {available}")
+    })
+}
+
 /// A loaded model and an arena for it.
 pub struct Runner {
     weights: AlignedBytes,
     arena: AlignedBytes,
+    kernels: &'static dyn Kernels,
 }
 
 impl Runner {
+    /// The model on the fastest kernels this CPU runs.
     pub fn new(weights_file: &[u8]) -> Result<Self> {
+        Self::with_kernels(weights_file, "auto")
+    }
+
+    /// The model on the kernels named `kernels` (`auto`, or a [`Backend`] name): an error
+    /// naming the ones this CPU runs when it cannot run that one.
+    pub fn with_kernels(weights_file: &[u8], kernels: &str) -> Result<Self> {
+        let kernels = select_kernels(kernels)?;
         let weights = crate::writer::aligned_copy(weights_file);
         let model =
             Model::from_bytes(weights.as_slice()).map_err(|error| anyhow::anyhow!("{error}"))?;
         let arena = AlignedBytes::zeroed(ArenaPlan::new(model.config()).arena_bytes);
-        Ok(Runner { weights, arena })
+        Ok(Runner {
+            weights,
+            arena,
+            kernels,
+        })
+    }
+
+    /// The name of the kernels that run.
+    pub fn kernels_name(&self) -> &'static str {
+        self.kernels.name()
     }
 
     /// Loads the model and a policy on the arena, its camera set to `inputs`', and hands the
@@ -193,7 +230,7 @@ impl Runner {
     ) -> Result<R> {
         let model = Model::from_bytes(self.weights.as_slice())
             .map_err(|error| anyhow::anyhow!("{error}"))?;
-        let mut policy = Policy::new(&model, self.arena.as_mut_slice())
+        let mut policy = Policy::with_kernels(&model, self.arena.as_mut_slice(), self.kernels)
             .map_err(|error| anyhow::anyhow!("{error}"))?;
         let camera = Camera::new(&inputs.intrinsics, &inputs.extrinsics)
             .map_err(|error| anyhow::anyhow!("camera: {error}"))?;
