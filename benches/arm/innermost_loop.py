@@ -1,0 +1,48 @@
+"""Prints, as llvm-mca input, the innermost loop of one function of an aarch64 disassembly
+(`aarch64-linux-gnu-objdump -d --no-show-raw-insn`) that holds the most of one mnemonic:
+the loop is the instructions from a backward branch's target to the branch.
+
+python3 innermost_loop.py DISASSEMBLY FUNCTION_SUBSTRING MNEMONIC
+"""
+
+import re
+import sys
+
+
+def function_body(lines, name):
+    body, inside = [], False
+    for line in lines:
+        if re.match(r"^[0-9a-f]+ <.*>:$", line):
+            if inside:
+                break
+            inside = name in line
+            continue
+        match = re.match(r"^\s*([0-9a-f]+):\s*(.*)$", line) if inside else None
+        if match:
+            body.append((int(match.group(1), 16), match.group(2).split("//")[0].strip()))
+    return body
+
+
+def main():
+    path, name, mnemonic = sys.argv[1:4]
+    body = function_body(open(path).read().split("\n"), name)
+    best = None
+    for address, instruction in body:
+        branch = re.match(r"^(b\.\w+|b|cbnz|cbz|tbnz|tbz)\s+(?:.*,\s*)?([0-9a-f]+) <", instruction)
+        if not branch or int(branch.group(2), 16) >= address:
+            continue
+        target = int(branch.group(2), 16)
+        loop = [text for at, text in body if target <= at <= address]
+        count = sum(1 for text in loop if text.split()[0] == mnemonic)
+        # The most of the mnemonic, then the shortest loop.
+        if count and (best is None or (count, -len(loop)) > best[0]):
+            best = ((count, -len(loop)), loop)
+    if best is None:
+        sys.exit(f"no loop with {mnemonic} in {name}")
+    print("loop:")
+    for text in best[1]:
+        print(re.sub(r"([0-9a-f]+) <[^>]*>$", "loop", text))
+
+
+if __name__ == "__main__":
+    main()
