@@ -7,7 +7,8 @@
 //! few simulated seconds, and reports through stdout and its exit status:
 //! 0 all checks passed, 1 a check failed, 2 the engine or the loop returned an error.
 //!
-//! Build and run (x86-64 Linux):
+//! Build and run (x86-64 or aarch64 Linux; `firmware-demo/freestanding.sh` also
+//! cross-builds it for aarch64 and runs it under qemu):
 //!   cargo build -p firmware-demo --bin firmware-freestanding --no-default-features \
 //!       --features freestanding --profile firmware
 //!   target/firmware/firmware-freestanding
