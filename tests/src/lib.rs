@@ -154,11 +154,15 @@ pub fn frontal_camera(config: &ModelConfig) -> Camera {
 }
 
 /// The kernel backends this CPU can run. `SCDP_REQUIRE_BACKENDS=avx2,avx512` (as CI sets it)
-/// turns a missing backend into a failure instead of a silent skip.
+/// turns a missing backend into a failure instead of a silent skip. `SCDP_TEST_BACKENDS=dot`
+/// keeps only the named ones: under emulation, where one run of the golden cases takes
+/// minutes, CI runs the aarch64 f32 kernels (one body for `neon`, `dot` and `i8mm`) once.
 pub fn available_backends() -> Vec<Backend> {
+    let only = std::env::var("SCDP_TEST_BACKENDS").unwrap_or_default();
+    let chosen = |backend: Backend| only.is_empty() || only.split(',').any(|n| n == backend.name());
     let mut found = Vec::new();
     for backend in Backend::ALL.into_iter().filter(|&b| b != Backend::Auto) {
-        if scdp_engine::kernels::select(backend).is_some() {
+        if scdp_engine::kernels::select(backend).is_some() && chosen(backend) {
             found.push(backend);
         }
     }
