@@ -8,7 +8,9 @@ import numpy as np
 import numpy.typing as npt
 from typing_extensions import Buffer
 
-_BackendName: TypeAlias = Literal["auto", "scalar", "avx2", "avx512", "amx"]
+_BackendName: TypeAlias = Literal[
+    "auto", "scalar", "avx2", "avx512", "amx", "neon", "dot", "i8mm"
+]
 _PrefixMode: TypeAlias = Literal["replace", "noised"]
 
 @type_check_only
@@ -62,9 +64,9 @@ class EngineError(RuntimeError):
     """An error the SCDP engine reported; `str(err)` is the engine's message."""
 
 def backends() -> list[str]:
-    """The names of the kernel backends this CPU can run (always including "scalar"), in
-    the order scalar, avx2, avx512, amx; `Policy(model, backend=name)` accepts each, and
-    "auto"."""
+    """The names of the kernel backends this CPU can run (always including "scalar"),
+    slowest first: scalar, avx2, avx512, amx on x86-64, scalar, neon, dot, i8mm on
+    aarch64; `Policy(model, backend=name)` accepts each, and "auto"."""
 
 @final
 class Model:

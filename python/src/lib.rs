@@ -36,15 +36,6 @@ fn engine_error(error: scdp_engine::Error) -> PyErr {
     EngineError::new_err(error.to_string())
 }
 
-/// The backends a caller may name, with the engine's names for them.
-const BACKENDS: [(&str, Backend); 5] = [
-    ("auto", Backend::Auto),
-    ("scalar", Backend::Scalar),
-    ("avx2", Backend::Avx2),
-    ("avx512", Backend::Avx512),
-    ("amx", Backend::Amx),
-];
-
 /// Zeroed bytes in an anonymous mapping: page aligned (the engine needs 64-byte alignment
 /// for weights and arena) and, on Linux, in transparent huge pages where the kernel has
 /// them, as `weights-tool` places its buffers: the U-Net reads all its weights at every
@@ -228,14 +219,15 @@ fn require_shape(name: &str, found: &[usize], expected: &[usize], what: &str) ->
     }
 }
 
-/// The names of the kernel backends this CPU can run (always including "scalar"), in the
-/// order scalar, avx2, avx512, amx; `Policy(model, backend=name)` accepts each, and "auto".
+/// The names of the kernel backends this CPU can run (always including "scalar"), slowest
+/// first: scalar, avx2, avx512, amx on x86-64; scalar, neon, dot, i8mm on aarch64.
+/// `Policy(model, backend=name)` accepts each, and "auto".
 #[pyfunction]
 fn backends() -> Vec<&'static str> {
-    BACKENDS
-        .iter()
-        .filter(|(_, backend)| *backend != Backend::Auto)
-        .filter_map(|&(_, backend)| kernels::select(backend).map(|kernels| kernels.name()))
+    Backend::ALL
+        .into_iter()
+        .filter(|&backend| backend != Backend::Auto)
+        .filter_map(|backend| kernels::select(backend).map(|kernels| kernels.name()))
         .collect()
 }
 
@@ -360,8 +352,8 @@ impl PyPolicy {
     #[new]
     #[pyo3(signature = (model, backend = "auto"))]
     fn new(model: &Bound<'_, PyModel>, backend: &str) -> PyResult<Self> {
-        let Some(&(_, backend)) = BACKENDS.iter().find(|(name, _)| *name == backend) else {
-            let names: Vec<&str> = BACKENDS.iter().map(|(name, _)| *name).collect();
+        let Some(backend) = Backend::from_name(backend) else {
+            let names: Vec<&str> = Backend::ALL.iter().map(|backend| backend.name()).collect();
             return Err(PyValueError::new_err(format!(
                 "backend must be one of {}; got {backend:?}",
                 names.join(", ")

@@ -207,11 +207,12 @@ def test_bad_weights_file_raises_the_engines_message(tmp_path):
 
 def test_unknown_backend_is_a_value_error(tiny_model):
     with pytest.raises(ValueError, match="backend must be one of auto, scalar, avx2"):
-        scdp.Policy(tiny_model, "neon")
+        scdp.Policy(tiny_model, "sve")
 
 
 def test_unavailable_backend_is_an_engine_error(tiny_model):
-    missing = [b for b in ("avx2", "avx512", "amx") if b not in scdp.backends()]
+    every = ("avx2", "avx512", "amx", "neon", "dot", "i8mm")
+    missing = [b for b in every if b not in scdp.backends()]
     if not missing:
         pytest.skip("this CPU runs every backend")
     with engine_error("the requested kernel backend cannot run on this CPU"):
@@ -476,7 +477,7 @@ def test_required_backends_run():
 def test_backends(tiny_model):
     names = scdp.backends()
     assert names[0] == "scalar"
-    assert set(names) <= {"scalar", "avx2", "avx512", "amx"}
+    assert set(names) <= {"scalar", "avx2", "avx512", "amx", "neon", "dot", "i8mm"}
     # "auto" takes the fastest, the last listed.
     assert scdp.Policy(tiny_model).backend == names[-1]
     for name in names:
