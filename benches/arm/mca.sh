@@ -7,10 +7,10 @@ cd "$(dirname "$0")/../.."
 export RUSTC=/usr/bin/rustc RUSTDOC=/usr/bin/rustdoc CARGO_TARGET_DIR=target/aarch64
 export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_LINKER=aarch64-linux-gnu-gcc
 export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUSTFLAGS="-C target-feature=+crt-static"
-/usr/bin/cargo build -q --release --target aarch64-unknown-linux-gnu -p scdp-tests --bin int8-bits
+/usr/bin/cargo build -q --release --target aarch64-unknown-linux-gnu -p scdp-tests --bin simd-bits
 work=$(mktemp -d)
 aarch64-linux-gnu-objdump -d --no-show-raw-insn \
-  target/aarch64/aarch64-unknown-linux-gnu/release/int8-bits >"$work/all.s"
+  target/aarch64/aarch64-unknown-linux-gnu/release/simd-bits >"$work/all.s"
 # name | function (substring of its symbol) | mnemonic counted
 loops=(
   "trunk digits (dot)|aarch644int83dot4conv|sdot"

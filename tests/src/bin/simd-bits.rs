@@ -1,13 +1,14 @@
-//! Prints one line per int8 case and kernel backend: the case, the backend, and a digest
-//! of the bits of every output (`action_pred`, the anchors). Every SIMD backend, on x86-64
-//! and aarch64, must print the same digest for a case (one weights file, one answer): CI
-//! runs this natively and under emulation of each ARM level and compares the lines
+//! Prints one line per case and kernel backend: the case, the backend, and a digest of the
+//! bits of every output (`action_pred`, the anchors). Every SIMD backend, on x86-64 and
+//! aarch64, must print the same digest for a case (one weights file, one answer): CI runs
+//! this natively and under emulation of each ARM level and compares the lines
 //! (`.ci/aarch64`). The scalar reference is left out: its f32 parts sum in another order.
 //!
-//! Cases: every golden fixture with the round-to-nearest int8 weights of its checkpoint,
-//! and every recorded observation of the trained Meta-World policies with their int8 file.
+//! Cases: every golden fixture with the round-to-nearest int8 weights of its checkpoint and
+//! with its f32 weights, and every recorded observation of the trained Meta-World policies
+//! with their int8 file.
 //!
-//! `cargo run --release -p scdp-tests --bin int8-bits [-- [--quick] [BACKEND]]`: every
+//! `cargo run --release -p scdp-tests --bin simd-bits [-- [--quick] [BACKEND]]`: every
 //! backend this CPU runs, or only BACKEND; `--quick` (CI under emulation) takes the golden
 //! cases `basic` and `prefix-planned` of each config and the first observation of each
 //! trained policy.
@@ -52,16 +53,18 @@ fn main() -> Result<()> {
             continue;
         }
         let fixture = Fixture::load(&path)?;
-        let file = synthetic_weights_file_as(&fixture.config, fixture.seed, Quant::Int8)?;
         let case = path
             .strip_prefix(root.join("fixtures/golden"))?
             .display()
             .to_string();
-        for &backend in &backends {
-            let run = run_engine_with(file.as_slice(), &fixture, backend)?;
-            let anchors: Vec<f32> = run.recorded.anchors_uv.concat();
-            let bits = digest(&run.action_pred) ^ digest(&anchors).rotate_left(1);
-            println!("{case} {} {bits:016x}", backend.name());
+        for (quant, label) in [(Quant::Int8, "int8"), (Quant::F32, "f32")] {
+            let file = synthetic_weights_file_as(&fixture.config, fixture.seed, quant)?;
+            for &backend in &backends {
+                let run = run_engine_with(file.as_slice(), &fixture, backend)?;
+                let anchors: Vec<f32> = run.recorded.anchors_uv.concat();
+                let bits = digest(&run.action_pred) ^ digest(&anchors).rotate_left(1);
+                println!("{case}:{label} {} {bits:016x}", backend.name());
+            }
         }
     }
     let mut tasks: Vec<_> = std::fs::read_dir(root.join("fixtures/trained"))?
