@@ -10,8 +10,7 @@
 //!
 //! `cargo run --release -p scdp-tests --bin simd-bits [-- [--quick] [BACKEND]]`: every
 //! backend this CPU runs, or only BACKEND; `--quick` (CI under emulation) takes the golden
-//! cases `basic` and `prefix-planned` of each config and the first observation of each
-//! trained policy.
+//! case `basic` of each config and the first observation of each trained policy.
 
 use anyhow::{Context, Result};
 use scdp_engine::{Backend, Model};
@@ -43,7 +42,7 @@ fn main() -> Result<()> {
         .collect();
     anyhow::ensure!(!backends.is_empty(), "no SIMD backend to run");
     let root = tests_dir();
-    let quick_cases = ["basic.safetensors", "prefix-planned.safetensors"];
+    let quick_cases = ["basic.safetensors"];
     for path in golden_fixtures() {
         let name = path
             .file_name()
