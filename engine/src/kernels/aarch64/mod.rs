@@ -67,36 +67,36 @@ pub(crate) mod int8 {
     pub(crate) use super::int8_lanes::{DotQ as SignedBytes, UsdotQ as Bytes};
 }
 
-/// The dot-product extension (`sdot`, FEAT_DotProd) is present.
+/// The dot-product extension (`sdot`, FEAT_DotProd) is present: asked of the OS.
+#[cfg(feature = "std")]
 pub fn has_dotprod() -> bool {
-    #[cfg(feature = "std")]
-    {
-        std::arch::is_aarch64_feature_detected!("dotprod")
-    }
-    #[cfg(not(feature = "std"))]
-    {
-        // ID_AA64ISAR0_EL1.DP, bits 47:44: 1 when present.
-        (id_register::<0>() >> 44) & 0xf >= 1
-    }
+    std::arch::is_aarch64_feature_detected!("dotprod")
 }
 
 /// The int8 matrix multiply extension (`usdot`, `smmla`, FEAT_I8MM) is present, and the
-/// dot product.
+/// dot product: asked of the OS.
+#[cfg(feature = "std")]
 pub fn has_i8mm() -> bool {
-    #[cfg(feature = "std")]
-    {
-        std::arch::is_aarch64_feature_detected!("i8mm") && has_dotprod()
-    }
-    #[cfg(not(feature = "std"))]
-    {
-        // ID_AA64ISAR1_EL1.I8MM, bits 55:52: 1 when present.
-        (id_register::<1>() >> 52) & 0xf >= 1 && has_dotprod()
-    }
+    std::arch::is_aarch64_feature_detected!("i8mm") && has_dotprod()
 }
 
-/// ID_AA64ISAR0_EL1 (`N = 0`) or ID_AA64ISAR1_EL1 (`N = 1`). Without std there is no OS to
-/// ask, so the register is read directly: allowed at EL1 (firmware), and emulated for EL0 by
-/// Linux (since 4.11) and by qemu's user mode.
+/// The dot-product extension (`sdot`, FEAT_DotProd) is present: ID_AA64ISAR0_EL1.DP, bits
+/// 47:44, is 1 or more.
+#[cfg(not(feature = "std"))]
+pub fn has_dotprod() -> bool {
+    (id_register::<0>() >> 44) & 0xf >= 1
+}
+
+/// The int8 matrix multiply extension (`usdot`, `smmla`, FEAT_I8MM) is present, and the
+/// dot product: ID_AA64ISAR1_EL1.I8MM, bits 55:52, is 1 or more.
+#[cfg(not(feature = "std"))]
+pub fn has_i8mm() -> bool {
+    (id_register::<1>() >> 52) & 0xf >= 1 && has_dotprod()
+}
+
+/// ID_AA64ISAR0_EL1 (`N = 0`) or ID_AA64ISAR1_EL1 (`N = 1`), read directly where there is
+/// no OS to ask: allowed at EL1 (firmware), and emulated for EL0 by Linux (since 4.11) and
+/// by qemu's user mode.
 #[cfg(not(feature = "std"))]
 fn id_register<const N: usize>() -> u64 {
     let value: u64;
