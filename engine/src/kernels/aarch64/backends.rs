@@ -3,14 +3,10 @@
 
 use super::lanes::Neon8;
 use super::{int8, sequence};
-use crate::kernels::scalar::{
-    Scalar, assert_byte_lengths, assert_conv_lengths, assert_conv_pixel_lengths,
-    assert_signed_byte_lengths, conv_int8_bytes,
-};
+use crate::kernels::scalar::{Scalar, assert_conv_lengths, assert_conv_pixel_lengths};
+use crate::kernels::simd;
 use crate::kernels::simd::f32_tile;
-use crate::kernels::simd::int8::{
-    byte_tiles_apply, checked_conv, checked_conv_codes, checked_conv_pixel, conv,
-};
+use crate::kernels::simd::int8::{checked_conv, checked_conv_codes, checked_conv_pixel};
 use crate::kernels::simd::sequence::Sequence;
 use crate::kernels::{
     Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, NarrowForm, SignedByteRows,
@@ -130,8 +126,7 @@ fn conv_pixel_f32(
     unsafe { conv_one_pixel(shape, (input, weight, bias), (out_y, out_x), output) }
 }
 
-/// [`conv`] on whole bytes with `usdot`, the lengths checked, shapes the tiles do not take
-/// on the scalar reference.
+/// `Kernels::conv_int8_bytes` with `usdot`.
 ///
 /// # Safety
 /// The CPU has I8MM.
@@ -143,23 +138,18 @@ unsafe fn checked_conv_bytes(
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
-    assert_byte_lengths(shape, input, parameters, output.len());
-    if !byte_tiles_apply(shape) {
-        return conv_int8_bytes(shape, input, parameters, output, accumulate);
-    }
     const TILE: (usize, usize) = int8::BYTES_TILE;
-    // SAFETY: I8MM (this function's contract); the lengths were asserted and the quads
-    // checked just above.
+    // SAFETY: I8MM (this function's contract).
     unsafe {
-        conv::<int8::Bytes, ByteRows<'_>, { TILE.0 }, { TILE.1 }>(
+        simd::int8::checked_conv_bytes::<int8::Bytes, { TILE.0 }, { TILE.1 }>(
             shape, input, parameters, output, accumulate,
         )
     }
 }
 
-/// The signed narrow codes with `sdot` (signed by signed: the weights as they are), the
-/// lengths checked. `usdot` would need the weights offset by 128 and the offset's share taken
-/// back out: the same sums, more work.
+/// `Kernels::conv_int8_signed_bytes` with `sdot` (signed by signed: the weights as they
+/// are; `usdot` would need them offset by 128 and the offset's share taken back out: the
+/// same sums, more work).
 ///
 /// # Safety
 /// The CPU has the dot-product extension.
@@ -171,12 +161,10 @@ unsafe fn checked_conv_signed_bytes(
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
-    assert_signed_byte_lengths(shape, input, parameters, output.len());
     const TILE: (usize, usize) = int8::BYTES_TILE;
-    // SAFETY: the dot product (this function's contract); the lengths were asserted just
-    // above.
+    // SAFETY: the dot product (this function's contract).
     unsafe {
-        conv::<int8::SignedBytes, SignedByteRows<'_>, { TILE.0 }, { TILE.1 }>(
+        simd::int8::checked_conv_signed_bytes::<int8::SignedBytes, { TILE.0 }, { TILE.1 }>(
             shape, input, parameters, output, accumulate,
         )
     }

@@ -41,10 +41,10 @@ mod matvec;
 mod tiles;
 
 use crate::kernels::scalar::{
-    assert_code_lengths, assert_int8_lengths, assert_int8_pixel_lengths, conv_int8_pixel,
-    conv_int8_pixels,
+    assert_byte_lengths, assert_code_lengths, assert_int8_lengths, assert_int8_pixel_lengths,
+    assert_signed_byte_lengths, conv_int8_bytes, conv_int8_pixel, conv_int8_pixels,
 };
-use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows};
+use crate::kernels::{Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, SignedByteRows};
 #[cfg(target_arch = "aarch64")]
 pub(crate) use lanes::CenteredByteLanes;
 pub(crate) use lanes::{Int8Lanes, SignedByteLanes, WholeByteLanes};
@@ -147,6 +147,53 @@ pub(crate) unsafe fn checked_conv_codes(
     assert_code_lengths(shape, input, parameters, output.len());
     // SAFETY: the caller vouches for the CPU; the lengths were asserted just above.
     unsafe { kernel(shape, input, parameters, output, accumulate) }
+}
+
+/// [`Kernels::conv_int8_bytes`](crate::kernels::Kernels::conv_int8_bytes) on lanes whose
+/// products take whole bytes, `P` x `V` tiles: the lengths checked, shapes the tiles do not
+/// take on the scalar reference. Each backend calls it inside its `#[target_feature]`
+/// wrapper.
+///
+/// # Safety
+/// The CPU supports `L`.
+#[inline(always)]
+pub(crate) unsafe fn checked_conv_bytes<L: WholeByteLanes, const P: usize, const V: usize>(
+    shape: &ConvShape,
+    input: &ByteRows<'_>,
+    parameters: (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    assert_byte_lengths(shape, input, parameters, output.len());
+    if !byte_tiles_apply(shape) {
+        return conv_int8_bytes(shape, input, parameters, output, accumulate);
+    }
+    // SAFETY: the caller vouches for the CPU; the lengths were asserted and the quads
+    // checked just above.
+    unsafe { conv::<L, ByteRows<'_>, P, V>(shape, input, parameters, output, accumulate) }
+}
+
+/// [`Kernels::conv_int8_signed_bytes`](crate::kernels::Kernels::conv_int8_signed_bytes) on
+/// `P` x `V` tiles of lanes `L`, the lengths checked (every input of whole codes suits the
+/// tiles).
+///
+/// # Safety
+/// The CPU supports `L`.
+#[inline(always)]
+pub(crate) unsafe fn checked_conv_signed_bytes<
+    L: SignedByteLanes,
+    const P: usize,
+    const V: usize,
+>(
+    shape: &ConvShape,
+    input: &SignedByteRows<'_>,
+    parameters: (&[i8], &[f32], &[f32]),
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    assert_signed_byte_lengths(shape, input, parameters, output.len());
+    // SAFETY: the caller vouches for the CPU; the lengths were asserted just above.
+    unsafe { conv::<L, SignedByteRows<'_>, P, V>(shape, input, parameters, output, accumulate) }
 }
 
 /// [`conv`] and [`conv_pixel`] compiled for one backend: the thin `#[target_feature]`

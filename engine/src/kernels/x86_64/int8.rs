@@ -3,8 +3,7 @@
 
 use super::int8_lanes::{PairSumsYmm, VnniZmm};
 pub(crate) use super::int8_lanes::{exact_digits_zmm, round_zmm};
-use crate::kernels::scalar::{assert_byte_lengths, assert_signed_byte_lengths, conv_int8_bytes};
-use crate::kernels::simd::int8::{byte_tiles_apply, conv};
+use crate::kernels::simd::int8;
 use crate::kernels::{Accumulate, ByteRows, ConvShape, SignedByteRows};
 
 /// Pixels and channel vectors of a tile, per backend, both digit planes' sums held across
@@ -44,9 +43,8 @@ crate::kernels::simd::int8::backend!(
 /// (8, 2) in 1.07-1.09x.
 const VNNI_BYTES_TILE: (usize, usize) = (4, 4);
 
-/// [`conv`] on whole bytes with VNNI's `vpdpbusd` (exact for 0..=255; AVX2's `vpmaddubsw`
-/// is not, so it has no such wrapper), the lengths checked, shapes the tiles do not take
-/// on the scalar reference.
+/// `Kernels::conv_int8_bytes` with VNNI's `vpdpbusd` (exact for 0..=255; AVX2's
+/// `vpmaddubsw` is not, so it has no such wrapper).
 ///
 /// # Safety
 /// The CPU supports AVX-512 F/BW/VL and VNNI.
@@ -58,23 +56,18 @@ pub(crate) unsafe fn checked_conv_bytes(
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
-    assert_byte_lengths(shape, input, parameters, output.len());
-    if !byte_tiles_apply(shape) {
-        return conv_int8_bytes(shape, input, parameters, output, accumulate);
-    }
-    // SAFETY: the CPU runs VNNI (this function's contract); the lengths were asserted and
-    // the quads checked just above.
+    const TILE: (usize, usize) = VNNI_BYTES_TILE;
+    // SAFETY: the CPU runs VNNI (this function's contract).
     unsafe {
-        conv::<VnniZmm, ByteRows<'_>, { VNNI_BYTES_TILE.0 }, { VNNI_BYTES_TILE.1 }>(
+        int8::checked_conv_bytes::<VnniZmm, { TILE.0 }, { TILE.1 }>(
             shape, input, parameters, output, accumulate,
         )
     }
 }
 
-/// [`Kernels::conv_int8_signed_bytes`](crate::kernels::Kernels::conv_int8_signed_bytes)
-/// with VNNI's `vpdpbusd` on the weights offset by 128 (the tile of whole bytes), the
-/// lengths checked (every input of whole codes suits the tiles). AVX2 has no such wrapper:
-/// it takes the same codes as 16-bit words ([`Kernels::multiplies_signed_bytes`]).
+/// `Kernels::conv_int8_signed_bytes` with VNNI's `vpdpbusd` on the weights offset by 128
+/// (the tile of whole bytes). AVX2 has no such wrapper: it takes the same codes as 16-bit
+/// words ([`Kernels::multiplies_signed_bytes`]).
 ///
 /// [`Kernels::multiplies_signed_bytes`]: crate::kernels::Kernels::multiplies_signed_bytes
 ///
@@ -88,11 +81,10 @@ pub(crate) unsafe fn checked_conv_signed_bytes(
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
-    assert_signed_byte_lengths(shape, input, parameters, output.len());
-    // SAFETY: the CPU runs VNNI (this function's contract); the lengths were asserted just
-    // above.
+    const TILE: (usize, usize) = VNNI_BYTES_TILE;
+    // SAFETY: the CPU runs VNNI (this function's contract).
     unsafe {
-        conv::<VnniZmm, SignedByteRows<'_>, { VNNI_BYTES_TILE.0 }, { VNNI_BYTES_TILE.1 }>(
+        int8::checked_conv_signed_bytes::<VnniZmm, { TILE.0 }, { TILE.1 }>(
             shape, input, parameters, output, accumulate,
         )
     }
