@@ -107,13 +107,7 @@ pub fn select(backend: Backend) -> Option<&'static dyn Kernels> {
         Backend::Neon => neon(),
         Backend::Dot => dot(),
         Backend::I8mm => i8mm(),
-        Backend::Auto => amx()
-            .or_else(avx512)
-            .or_else(avx2)
-            .or_else(i8mm)
-            .or_else(dot)
-            .or_else(neon)
-            .or(Some(&scalar::Scalar)),
+        Backend::Auto => available().next(),
     }
 }
 
