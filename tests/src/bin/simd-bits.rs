@@ -8,9 +8,11 @@
 //! with its f32 weights, and every recorded observation of the trained Meta-World policies
 //! with their int8 file.
 //!
-//! `cargo run --release -p scdp-tests --bin simd-bits [-- [--quick] [BACKEND]]`: every
-//! backend this CPU runs, or only BACKEND; `--quick` (CI under emulation) takes the golden
-//! case `basic` of each config and the first observation of each trained policy.
+//! `cargo run --release -p scdp-tests --bin simd-bits [-- [--quick] [--int8 | --f32]
+//! [BACKEND...]]`: every backend this CPU runs, or only the BACKENDs named; `--quick` (CI
+//! under emulation) takes the golden case `basic` of each config and the first observation
+//! of each trained policy; `--int8` / `--f32` only the cases with those weights (the ARM
+//! backends share one f32 code path, so CI runs f32 on one of them and int8 on all).
 
 use anyhow::{Context, Result};
 use scdp_engine::{Backend, Model};
@@ -30,17 +32,29 @@ fn digest(values: &[f32]) -> u64 {
 
 fn main() -> Result<()> {
     let arguments: Vec<String> = std::env::args().skip(1).collect();
-    let quick = arguments.iter().any(|argument| argument == "--quick");
-    let only = arguments
+    let flag = |name: &str| arguments.iter().any(|argument| argument == name);
+    let quick = flag("--quick");
+    let (int8, f32) = match (flag("--int8"), flag("--f32")) {
+        (false, false) => (true, true),
+        chosen => chosen,
+    };
+    let named: Vec<&String> = arguments
         .iter()
-        .find(|argument| !argument.starts_with("--"));
+        .filter(|argument| !argument.starts_with("--"))
+        .collect();
+    for name in &named {
+        anyhow::ensure!(Backend::from_name(name).is_some(), "unknown backend {name}");
+    }
     let backends: Vec<Backend> = Backend::ALL
         .into_iter()
         .filter(|&b| !matches!(b, Backend::Auto | Backend::Scalar))
         .filter(|&b| scdp_engine::kernels::select(b).is_some())
-        .filter(|b| only.is_none_or(|name| name.as_str() == b.name()))
+        .filter(|b| named.is_empty() || named.iter().any(|name| name.as_str() == b.name()))
         .collect();
-    anyhow::ensure!(!backends.is_empty(), "no SIMD backend to run");
+    anyhow::ensure!(
+        !backends.is_empty() && (named.is_empty() || backends.len() == named.len()),
+        "a named backend is not a SIMD backend this CPU runs"
+    );
     let root = tests_dir();
     let quick_cases = ["basic.safetensors"];
     for path in golden_fixtures() {
@@ -56,7 +70,8 @@ fn main() -> Result<()> {
             .strip_prefix(root.join("fixtures/golden"))?
             .display()
             .to_string();
-        for (quant, label) in [(Quant::Int8, "int8"), (Quant::F32, "f32")] {
+        let quants = [(Quant::Int8, "int8", int8), (Quant::F32, "f32", f32)];
+        for (quant, label, _) in quants.into_iter().filter(|(_, _, chosen)| *chosen) {
             let file = synthetic_weights_file_as(&fixture.config, fixture.seed, quant)?;
             for &backend in &backends {
                 let run = run_engine_with(file.as_slice(), &fixture, backend)?;
@@ -65,6 +80,9 @@ fn main() -> Result<()> {
                 println!("{case}:{label} {} {bits:016x}", backend.name());
             }
         }
+    }
+    if !int8 {
+        return Ok(());
     }
     let mut tasks: Vec<_> = std::fs::read_dir(root.join("fixtures/trained"))?
         .flatten()
