@@ -601,6 +601,54 @@ def difference_interval(successes_a: int, trials_a: int, successes_b: int, trial
             difference + math.sqrt((ua - pa) ** 2 + (pb - lb) ** 2))
 
 
+def paired_difference_interval(a: dict, b: dict):
+    """The difference a - b of two `eval` results' success rates on the same seeds, with
+    Newcombe's score interval for paired proportions (95%, his method 10: each rate's Wilson
+    interval, combined with the correlation of the pairs' outcomes)."""
+    seeds = range(a["first_seed"], a["first_seed"] + a["episodes"])
+    if (b["first_seed"], b["episodes"]) != (a["first_seed"], a["episodes"]):
+        raise ValueError("a paired difference needs the same seeds")
+    failed_a, failed_b = set(a["failed_seeds"]), set(b["failed_seeds"])
+    both = sum(1 for s in seeds if s not in failed_a and s not in failed_b)
+    only_a = sum(1 for s in seeds if s not in failed_a and s in failed_b)
+    only_b = sum(1 for s in seeds if s in failed_a and s not in failed_b)
+    neither = a["episodes"] - both - only_a - only_b
+    n = a["episodes"]
+    pa, pb = (both + only_a) / n, (both + only_b) / n
+    la, ua = wilson_interval(both + only_a, n)
+    lb, ub = wilson_interval(both + only_b, n)
+    product = (both + only_a) * (only_b + neither) * (both + only_b) * (only_a + neither)
+    cross = both * neither - only_a * only_b
+    # Newcombe's continuity correction of the correlation where it is positive.
+    phi = 0.0 if product == 0 else (max(cross - n / 2, 0) if cross > 0 else cross) / math.sqrt(product)
+    lower = math.sqrt(max((pa - la) ** 2 - 2 * phi * (pa - la) * (ub - pb) + (ub - pb) ** 2, 0.0))
+    upper = math.sqrt(max((ua - pa) ** 2 - 2 * phi * (ua - pa) * (pb - lb) + (pb - lb) ** 2, 0.0))
+    difference = pa - pb
+    return {"difference": difference, "difference_95": [difference - lower, difference + upper],
+            "discordant": [only_a, only_b]}
+
+
+def compare_table(path: Path) -> str:
+    """A Markdown table of an `eval.json` (the runtimes' results on the same seeds): each
+    runtime's success with its Wilson interval and its paired difference to PyTorch."""
+    results = json.loads(path.read_text())
+    torch_result = next(r for r in results if r["runtime"] == "torch")
+    lines = ["| runtime | success (95%) | minus torch, paired (95%) | discordant seeds |",
+             "|---|---|---|---|"]
+    for r in results:
+        low, high = r["success_rate_95"]
+        row = f"| {r['runtime']} | {r['successes']}/{r['episodes']} ({low:.3f} - {high:.3f}) |"
+        if r is torch_result:
+            lines.append(row + " | |")
+            continue
+        paired = paired_difference_interval(r, torch_result)
+        dl, dh = paired["difference_95"]
+        only_r, only_torch = paired["discordant"]
+        lines.append(row + f" {paired['difference']:+.3f} ({dl:+.3f} .. {dh:+.3f}) |"
+                     f" {only_r} only {r['runtime']}, {only_torch} only torch |")
+    return "\n".join(lines)
+
+
 def latency_table(paths) -> str:
     """A Markdown table of `eval` results (JSON lines) with latency: per task and latency,
     each hand-over rule's success, its difference to dropping the stale actions at the same
@@ -708,10 +756,14 @@ def main(argv=None) -> None:
     p.add_argument("--planned", action="store_true",
                    help="with --prefix: also give the old chunk's plan after the prefix, which the "
                         "new chunk is pulled towards")
+    p = commands.add_parser("compare", help="a Markdown table of an eval.json: success, paired difference to torch")
+    p.add_argument("eval_json", type=Path, help="a JSON list of eval results on the same seeds")
     p = commands.add_parser("latency-table", help="a Markdown table of eval results with latency")
     p.add_argument("results", nargs="+", type=Path, help="files of eval's JSON lines")
     args = parser.parse_args(argv)
-    if args.command == "latency-table":
+    if args.command == "compare":
+        print(compare_table(args.eval_json))
+    elif args.command == "latency-table":
         print(latency_table(args.results))
     elif args.command == "collect":
         collect(args.task, args.model_dir, args.episodes, args.first_seed)

@@ -92,13 +92,28 @@ def test_engine_reproduces_torch_on_recorded_observations(folder, quant, f32_wei
 
 
 @pytest.mark.parametrize("folder", TRAINED, ids=lambda f: f.name)
-def test_int8_policy_in_closed_loop(folder):
-    """At least the measured int8 success rate less a margin: the lower end of the 95% Wilson
-    interval that SMOKE_EPISODES episodes at the measured rate would have, so a correct
-    policy fails this rarely, and one that has lost its skill (the measured rate near 0 for
-    a broken camera model or quantization) fails it."""
+def test_engine_succeeds_as_often_as_torch(folder):
+    """The shipped evaluation: engine f32 and int8 on the torch rollouts' seeds, the 95%
+    interval of their paired difference to PyTorch's success holds zero and reaches no lower
+    than -0.10 (a file converted or evaluated again must still meet it to ship)."""
     from scdp import metaworld
 
+    results = evaluations(folder)
+    for runtime in ("engine-f32", "engine-int8"):
+        paired = metaworld.paired_difference_interval(results[runtime], results["torch"])
+        low, high = paired["difference_95"]
+        assert low <= 0 <= high and low > -0.10, (runtime, paired)
+
+
+def test_int8_policy_in_closed_loop():
+    """On the task whose episodes are shortest (CI's time): at least the measured int8
+    success rate less a margin, the lower end of the 95% Wilson interval that SMOKE_EPISODES
+    episodes at the measured rate would have, so a correct policy fails this rarely, and one
+    that has lost its skill (the measured rate near 0 for a broken camera model or
+    quantization) fails it."""
+    from scdp import metaworld
+
+    folder = min(TRAINED, key=lambda f: evaluations(f)["engine-int8"]["mean_steps"])
     measured = evaluations(folder)["engine-int8"]["success_rate"]
     floor, _ = metaworld.wilson_interval(round(measured * SMOKE_EPISODES), SMOKE_EPISODES)
     result = metaworld.evaluate(task_of(folder), folder, "engine-int8", SMOKE_EPISODES, SMOKE_FIRST_SEED,
