@@ -243,6 +243,7 @@ pub const CALIBRATION_SEED: u64 = 7;
 /// [`CALIBRATION_SCENES`] synthetic scenes seen through `fixture`'s camera (a deployment
 /// constant: the camera the policy runs with is the one it is calibrated with); the same
 /// rounding written twice, with one weight plane and with the trunk refined.
+#[cfg(feature = "gptq")]
 pub fn calibrated_int8_weights_files(fixture: &Fixture) -> Result<CalibratedFiles> {
     use weights_tool::lowering::{self, Rounding};
     let config = &fixture.config;

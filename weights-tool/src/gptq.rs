@@ -15,18 +15,10 @@ use faer::linalg::solvers::DenseSolveCore;
 use faer::{Accum, Mat, Par, Side};
 
 use crate::calibrate::InputMoment;
+pub use crate::lowering::ChannelAxis;
 
 /// Inputs rounded between two updates of the remaining ones by one matrix product.
 const BLOCK: usize = 128;
-
-/// How a weight tensor's values are laid out.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum ChannelAxis {
-    /// `[inputs, channels]`: convolution kernels, `[taps, in, out]` flattened.
-    Last,
-    /// `[channels, inputs]`: FiLM matrices, one row per output.
-    First,
-}
 
 /// Rounds `values` to int8 with the per-channel `scales`, GPTQ-style with the input moment
 /// `moment` (`damping` times the mean of its diagonal is added to the diagonal). Returns

@@ -5,9 +5,11 @@
 //! [`lowering::lower_to_weights_file`].
 
 pub mod activations;
+#[cfg(feature = "gptq")]
 pub mod calibrate;
 pub mod checkpoint;
 pub mod config;
+#[cfg(feature = "gptq")]
 pub mod gptq;
 pub mod inspect;
 pub mod keys;

@@ -15,7 +15,6 @@ use anyhow::{Context, Result, bail, ensure};
 use scdp_engine::config::{BackboneNorm, ModelConfig, UNET_LEVELS};
 use scdp_engine::weights::{ActivationCodes, NarrowCodes};
 
-use crate::gptq::ChannelAxis;
 use crate::quant::Quant;
 use crate::writer::{ResidualPlane, Stored};
 
@@ -698,6 +697,22 @@ fn quantize_per_channel(values: &[f32], channels: usize, axis: ChannelAxis) -> (
     (quantized, scales)
 }
 
+/// How a weight tensor's values are laid out.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ChannelAxis {
+    /// `[inputs, channels]`: convolution kernels, `[taps, in, out]` flattened.
+    Last,
+    /// `[channels, inputs]`: FiLM matrices, one row per output.
+    First,
+}
+
+/// Calibration moments ([`crate::calibrate::Moments`]); none exist without the `gptq` feature.
+#[cfg(feature = "gptq")]
+pub use crate::calibrate::Moments;
+/// Calibration moments: none exist without the `gptq` feature.
+#[cfg(not(feature = "gptq"))]
+pub enum Moments {}
+
 /// How int8 weights are rounded.
 #[derive(Clone, Copy, Default)]
 pub enum Rounding<'m> {
@@ -706,7 +721,7 @@ pub enum Rounding<'m> {
     Nearest,
     /// GPTQ with the input moments of calibration scenes ([`calibrate`]); weights without a
     /// moment are rounded to nearest.
-    Calibrated(&'m crate::calibrate::Moments),
+    Calibrated(&'m Moments),
 }
 
 /// GPTQ damping: this fraction of the mean diagonal of an input moment is added to its
@@ -742,6 +757,7 @@ pub fn int8_tensors(config: &ModelConfig) -> Result<Vec<(String, usize)>> {
 
 /// Runs the f32 model `lowered` on `scenes` and returns the input moments of its
 /// int8-capable weights, for [`Rounding::Calibrated`].
+#[cfg(feature = "gptq")]
 pub fn calibrate(
     config: &ModelConfig,
     lowered: &Lowered,
@@ -753,6 +769,35 @@ pub fn calibrate(
         &store(config, lowered.clone(), Quant::F32, Rounding::Nearest)?,
     )?;
     crate::calibrate::input_moments(&f32_file, &int8_tensors(config)?, scenes, progress)
+}
+
+/// `name`'s weights rounded by GPTQ with its calibration moment; `None` for a weight
+/// without one (rounded to nearest).
+#[cfg(feature = "gptq")]
+fn gptq_rounding(
+    moments: &Moments,
+    name: &str,
+    values: &[f32],
+    scales: &[f32],
+    axis: ChannelAxis,
+) -> Result<Option<Vec<i8>>> {
+    let Some(moment) = moments.get(name) else {
+        return Ok(None);
+    };
+    crate::gptq::quantize(values, scales, axis, moment, GPTQ_DAMPING)
+        .map(Some)
+        .with_context(|| format!("GPTQ rounding of `{name}`"))
+}
+
+#[cfg(not(feature = "gptq"))]
+fn gptq_rounding(
+    moments: &Moments,
+    _: &str,
+    _: &[f32],
+    _: &[f32],
+    _: ChannelAxis,
+) -> Result<Option<Vec<i8>>> {
+    match *moments {}
 }
 
 /// [`store`] with a custom choice of the weights kept in f32 in int8 mode (for measuring
@@ -783,10 +828,9 @@ pub fn store_keeping(
                 };
                 let (mut quantized, scales) = quantize_per_channel(&values, channels, axis);
                 if let Rounding::Calibrated(moments) = rounding
-                    && let Some(moment) = moments.get(&name)
+                    && let Some(rounded) = gptq_rounding(moments, &name, &values, &scales, axis)?
                 {
-                    quantized = crate::gptq::quantize(&values, &scales, axis, moment, GPTQ_DAMPING)
-                        .with_context(|| format!("GPTQ rounding of `{name}`"))?;
+                    quantized = rounded;
                 }
                 // The trunk's residual-block convolutions may be refined by a second plane
                 // (whether they are is measured later, `crate::refine`): what the rounding
