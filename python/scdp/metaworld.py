@@ -652,7 +652,8 @@ def compare_table(path: Path) -> str:
 def latency_table(paths) -> str:
     """A Markdown table of `eval` results (JSON lines) with latency: per task and latency,
     each hand-over rule's success, its difference to dropping the stale actions at the same
-    latency (Newcombe's interval), and the seam figures."""
+    latency (Newcombe's interval: paired where both results list their failed seeds, else for
+    independent rates), and the seam figures."""
     results = []
     for path in paths:
         for line in Path(path).read_text().splitlines():
@@ -673,8 +674,13 @@ def latency_table(paths) -> str:
         low, high = r["success_rate_95"]
         versus = ""
         if drop is not None and drop is not r:
-            a, b = difference_interval(r["successes"], r["episodes"], drop["successes"], drop["episodes"])
-            versus = f"{r['success_rate'] - drop['success_rate']:+.2f} ({a:+.3f} .. {b:+.3f})"
+            same_seeds = (r["first_seed"], r["episodes"]) == (drop["first_seed"], drop["episodes"])
+            if same_seeds and "failed_seeds" in r and "failed_seeds" in drop:
+                (a, b), kind = paired_difference_interval(r, drop)["difference_95"], " paired"
+            else:
+                (a, b), kind = difference_interval(r["successes"], r["episodes"], drop["successes"],
+                                                   drop["episodes"]), ""
+            versus = f"{r['success_rate'] - drop['success_rate']:+.2f} ({a:+.3f} .. {b:+.3f}){kind}"
         seams = r["seams"]
         lines.append(
             f"| {r['task']} | {r['latency_steps']} | {rule(r)} | {r['successes']}/{r['episodes']} "
