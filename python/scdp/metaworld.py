@@ -562,6 +562,33 @@ def agreement_with(runtime, record, action_scale):
             "p99_chunk_max": float(np.quantile(errors.reshape(len(record), -1).max(axis=1), 0.99))}
 
 
+def recorded_agreement(weights: Path, folder: Path, budget: float = 0.02, worst: int = 5) -> dict:
+    """A weights file on recorded inferences (`eval --agreement --record N` files): its
+    agreement with the recorded torch actions as `agreement_with` measures it, the chunks
+    whose largest error is over `budget`, and the `worst` chunks (file, seed, chunk, max)."""
+    from safetensors import safe_open
+
+    runtime = EngineRuntime(weights, weights.stem)
+    errors, chunks = [], []
+    for file in sorted(folder.glob("*.safetensors")):
+        with safe_open(str(file), "np") as run:
+            tensors = {name: run.get_tensor(name) for name in run.keys()}
+            meta = run.metadata() or {}
+        runtime.reset(tensors["camera_k"], tensors["camera_t"])
+        for image, state in zip(tensors["images"], tensors["state"]):
+            runtime.push(image, state)
+        action_pred, _ = runtime.infer(tensors["noise"])
+        error = np.abs(action_pred - tensors["torch.action_pred"]) * tensors["action_scale"]
+        errors.append(error)
+        chunks.append((float(error.max()), file.name, meta.get("seed"), meta.get("chunk")))
+    errors = np.stack(errors)
+    chunk_max = errors.reshape(len(errors), -1).max(axis=1)
+    return {"weights": str(weights), "inferences": len(errors), "max": float(errors.max()),
+            "mean": float(errors.mean()), "p99_chunk_max": float(np.quantile(chunk_max, 0.99)),
+            "chunks_over_budget": int((chunk_max > budget).sum()), "budget": budget,
+            "worst": [{"max": m, "file": f, "seed": sd, "chunk": c} for m, f, sd, c in sorted(chunks)[::-1][:worst]]}
+
+
 def write_observations(folder: Path, record, count, action_scale):
     """`count` recorded inferences, spread over the rollouts, as run files with the torch
     output beside the inputs (`torch.action_pred`, and the `action_scale` that normalizes
@@ -762,12 +789,19 @@ def main(argv=None) -> None:
     p.add_argument("--planned", action="store_true",
                    help="with --prefix: also give the old chunk's plan after the prefix, which the "
                         "new chunk is pulled towards")
+    p = commands.add_parser("agreement", help="a weights file on recorded inferences, against their torch actions")
+    p.add_argument("--weights", type=Path, required=True, help="a weights file of convert")
+    p.add_argument("--observations", type=Path, required=True,
+                   help="a folder of eval --agreement --record N files")
+    p.add_argument("--budget", type=float, default=0.02, help="count the chunks whose largest error is over this")
     p = commands.add_parser("compare", help="a Markdown table of an eval.json: success, paired difference to torch")
     p.add_argument("eval_json", type=Path, help="a JSON list of eval results on the same seeds")
     p = commands.add_parser("latency-table", help="a Markdown table of eval results with latency")
     p.add_argument("results", nargs="+", type=Path, help="files of eval's JSON lines")
     args = parser.parse_args(argv)
-    if args.command == "compare":
+    if args.command == "agreement":
+        print(json.dumps(recorded_agreement(args.weights, args.observations, args.budget)))
+    elif args.command == "compare":
         print(compare_table(args.eval_json))
     elif args.command == "latency-table":
         print(latency_table(args.results))
