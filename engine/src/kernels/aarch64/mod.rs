@@ -67,17 +67,21 @@ pub(crate) mod int8 {
     pub(crate) use super::int8_lanes::{DotQ as SignedBytes, UsdotQ as Bytes};
 }
 
+// The OS's answer needs std; without it the ID registers are read (below).
+#[cfg(feature = "std")]
+use std::arch::is_aarch64_feature_detected;
+
 /// The dot-product extension (`sdot`, FEAT_DotProd) is present: asked of the OS.
 #[cfg(feature = "std")]
 pub fn has_dotprod() -> bool {
-    std::arch::is_aarch64_feature_detected!("dotprod")
+    is_aarch64_feature_detected!("dotprod")
 }
 
 /// The int8 matrix multiply extension (`usdot`, `smmla`, FEAT_I8MM) is present, and the
 /// dot product: asked of the OS.
 #[cfg(feature = "std")]
 pub fn has_i8mm() -> bool {
-    std::arch::is_aarch64_feature_detected!("i8mm") && has_dotprod()
+    is_aarch64_feature_detected!("i8mm") && has_dotprod()
 }
 
 /// The dot-product extension (`sdot`, FEAT_DotProd) is present: ID_AA64ISAR0_EL1.DP, bits
