@@ -549,6 +549,13 @@ def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backe
 def agreement_with(runtime, record, action_scale):
     """The engine on the torch rollout's own inputs, with the same noise: max and mean of
     |engine - torch| x action scale (normalized action units) over every recorded chunk."""
+    errors = inference_errors(runtime, record, action_scale)
+    return agreement_figures(errors)
+
+
+def inference_errors(runtime, record, action_scale) -> np.ndarray:
+    """|runtime - torch| x action scale of every recorded inference, `[inferences, horizon,
+    action_dim]`."""
     errors = []
     for entry in record:
         runtime.reset(entry["camera_k"], entry["camera_t"])
@@ -557,36 +564,27 @@ def agreement_with(runtime, record, action_scale):
         action_pred, _ = runtime.infer(entry["noise"], entry.get("prefix"), entry.get("prefix_mode") or "replace",
                                        entry.get("planned"))
         errors.append(np.abs(action_pred - entry["action_pred"]) * action_scale)
-    errors = np.stack(errors)
-    return {"inferences": len(record), "max": float(errors.max()), "mean": float(errors.mean()),
-            "p99_chunk_max": float(np.quantile(errors.reshape(len(record), -1).max(axis=1), 0.99))}
+    return np.stack(errors)
+
+
+def agreement_figures(errors: np.ndarray) -> dict:
+    """Max, mean and the 99th percentile of a chunk's max of `inference_errors`."""
+    return {"inferences": len(errors), "max": float(errors.max()), "mean": float(errors.mean()),
+            "p99_chunk_max": float(np.quantile(errors.reshape(len(errors), -1).max(axis=1), 0.99))}
 
 
 def recorded_agreement(weights: Path, folder: Path, budget: float = 0.02, worst: int = 5) -> dict:
-    """A weights file on recorded inferences (`eval --agreement --record N` files): its
-    agreement with the recorded torch actions as `agreement_with` measures it, the chunks
-    whose largest error is over `budget`, and the `worst` chunks (file, seed, chunk, max)."""
-    from safetensors import safe_open
-
-    runtime = EngineRuntime(weights, weights.stem)
-    errors, chunks = [], []
-    for file in sorted(folder.glob("*.safetensors")):
-        with safe_open(str(file), "np") as run:
-            tensors = {name: run.get_tensor(name) for name in run.keys()}
-            meta = run.metadata() or {}
-        runtime.reset(tensors["camera_k"], tensors["camera_t"])
-        for image, state in zip(tensors["images"], tensors["state"]):
-            runtime.push(image, state)
-        action_pred, _ = runtime.infer(tensors["noise"])
-        error = np.abs(action_pred - tensors["torch.action_pred"]) * tensors["action_scale"]
-        errors.append(error)
-        chunks.append((float(error.max()), file.name, meta.get("seed"), meta.get("chunk")))
-    errors = np.stack(errors)
+    """A weights file on recorded inferences (`write_observations` files): its agreement
+    with the recorded torch actions, the chunks whose largest error is over `budget`, and
+    the `worst` chunks (file, seed, chunk, max)."""
+    record, action_scale = read_observations(folder)
+    errors = inference_errors(EngineRuntime(weights, weights.stem), record, action_scale)
     chunk_max = errors.reshape(len(errors), -1).max(axis=1)
-    return {"weights": str(weights), "inferences": len(errors), "max": float(errors.max()),
-            "mean": float(errors.mean()), "p99_chunk_max": float(np.quantile(chunk_max, 0.99)),
+    order = np.argsort(chunk_max)[::-1][:worst]
+    return {"weights": str(weights), **agreement_figures(errors),
             "chunks_over_budget": int((chunk_max > budget).sum()), "budget": budget,
-            "worst": [{"max": m, "file": f, "seed": sd, "chunk": c} for m, f, sd, c in sorted(chunks)[::-1][:worst]]}
+            "worst": [{"max": float(chunk_max[i]), "file": record[i]["file"], "seed": record[i]["seed"],
+                       "chunk": record[i]["chunk"]} for i in order]}
 
 
 def write_observations(folder: Path, record, count, action_scale):
@@ -605,6 +603,23 @@ def write_observations(folder: Path, record, count, action_scale):
             "action_scale": np.ascontiguousarray(action_scale, dtype=np.float32),
         }, str(folder / f"{number:03d}.safetensors"),
             metadata={"seed": str(entry["seed"]), "chunk": str(entry["chunk"])})
+
+
+def read_observations(folder: Path):
+    """The files of `write_observations` as record entries (`action_pred` the torch output),
+    with their `action_scale`."""
+    from safetensors import safe_open
+
+    record, action_scale = [], None
+    for file in sorted(folder.glob("*.safetensors")):
+        with safe_open(str(file), "np") as run:
+            tensors = {name: run.get_tensor(name) for name in run.keys()}
+            meta = run.metadata() or {}
+        action_scale = tensors["action_scale"]
+        record.append({**{k: tensors[k] for k in ("images", "state", "noise", "camera_k", "camera_t")},
+                       "action_pred": tensors["torch.action_pred"], "file": file.name,
+                       "seed": meta.get("seed"), "chunk": meta.get("chunk")})
+    return record, action_scale
 
 
 def wilson_interval(successes: int, trials: int, z: float = 1.959963984540054):

@@ -15,7 +15,7 @@ use faer::linalg::solvers::DenseSolveCore;
 use faer::{Accum, Mat, Par, Side};
 
 use crate::calibrate::InputMoment;
-pub use crate::lowering::ChannelAxis;
+use crate::lowering::ChannelAxis;
 
 /// Inputs rounded between two updates of the remaining ones by one matrix product.
 const BLOCK: usize = 128;
