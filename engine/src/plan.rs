@@ -67,6 +67,9 @@ pub struct ArenaPlan {
     /// Denoising phase: four work buffers and the two skips the up path reads.
     pub unet_work: usize,
     pub unet_skips: [usize; UNET_LEVELS - 1],
+    /// Denoising phase too: the outputs of a U-Net convolution cut by output channels over
+    /// several workers ([`crate::kernels::Split`]), one work buffer's length.
+    pub unet_split: usize,
 }
 
 impl ArenaPlan {
@@ -101,6 +104,7 @@ impl ArenaPlan {
             trunk_stem: saturate(plan.trunk_stem),
             unet_work: saturate(plan.unet_work),
             unet_skips: [saturate(plan.unet_skips[0]), saturate(plan.unet_skips[1])],
+            unet_split: saturate(plan.unet_split),
         }
     }
 
@@ -222,6 +226,7 @@ struct Lengths {
     trunk_stem: u64,
     unet_work: u64,
     unet_skips: [u64; UNET_LEVELS - 1],
+    unet_split: u64,
 }
 
 impl Lengths {
@@ -283,10 +288,11 @@ impl Lengths {
             aligned((horizon / 2) * config.down_dims[1] as u64),
             aligned((horizon / 4) * config.down_dims[2] as u64),
         ];
-        let unet = 4 * unet_work + unet_skips[0] + unet_skips[1];
+        let unet_split = unet_work;
+        let unet = unet_split + 4 * unet_work + unet_skips[0] + unet_skips[1];
         // Without reuse: every block output and intermediate of one U-Net pass (two
         // convolutions per block, 12 blocks, plus the resampling layers and the head).
-        let unet_naive = 3 * 12 * horizon * 2 * widest + 6 * horizon * widest;
+        let unet_naive = 3 * 12 * horizon * 2 * widest + 6 * horizon * widest + unet_split;
 
         // Int8 layer inputs, quantized one layer at a time: the trunk's fit one activation
         // buffer as two digit planes; the U-Net's are at most `horizon` rows of an up
@@ -332,6 +338,7 @@ impl Lengths {
             trunk_stem,
             unet_work,
             unet_skips,
+            unet_split,
         }
     }
 }

@@ -8,7 +8,7 @@ use crate::error::Error;
 use crate::format::WeightsFile;
 use crate::frame;
 use crate::kernels::ops::mish;
-use crate::kernels::{self, Backend, Kernels, QuantizeScratch};
+use crate::kernels::{self, Backend, Kernels, QuantizeScratch, Sequential, Split, Workers};
 use crate::plan::{ArenaPlan, Carver};
 use crate::pyramid::{self, FrameStore, TrunkScratch};
 use crate::rng::NoiseRng;
@@ -193,6 +193,8 @@ pub struct Policy<'w, 'a> {
     plan: ArenaPlan,
     arena: &'a mut [f32],
     kernels: &'static dyn Kernels,
+    /// Who runs the pieces of a kernel call ([`Split`]); one worker runs them whole.
+    workers: &'w dyn Workers,
     camera: Option<Camera>,
     /// Ring slot of the newest frame; frames are pushed into `(newest + 1) % To`.
     newest: usize,
@@ -245,10 +247,27 @@ impl<'w, 'a> Policy<'w, 'a> {
             plan,
             arena,
             kernels,
+            workers: &Sequential,
             camera: None,
             newest: 0,
             observed: 0,
         })
+    }
+
+    /// Runs each inference on `workers` (cores given by the caller): the trunk's and the
+    /// projections' convolutions cut into bands of output rows, the U-Net's int8
+    /// convolutions into blocks of output channels and the FiLM products into runs of rows,
+    /// one piece a worker ([`Split`]). The results are the same bits for any number of
+    /// workers; one worker (the default) runs everything on the calling core.
+    #[must_use]
+    pub fn with_workers(mut self, workers: &'w dyn Workers) -> Self {
+        self.workers = workers;
+        self
+    }
+
+    /// How many workers run an inference.
+    pub fn workers(&self) -> usize {
+        self.workers.count()
     }
 
     pub fn config(&self) -> &ModelConfig {
@@ -319,10 +338,13 @@ impl<'w, 'a> Policy<'w, 'a> {
             0
         };
         let frame_len = self.plan.frame.total;
-        let kernels = self.kernels;
+        let (kernels, workers) = (self.kernels, self.workers);
         let weights = self.model.weights();
         let plan = self.plan;
         let buffers = self.buffers();
+        // The trunk's calls are cut by rows, which needs no scratch.
+        let split = Split::new(kernels, workers, &mut []);
+        let kernels: &dyn Kernels = if workers.count() > 1 { &split } else { kernels };
         let (first, rest) = buffers.scratch.split_at_mut(plan.trunk_activation);
         frame::check_size(&config, image)?;
         let mut store = FrameStore::new(
@@ -386,11 +408,14 @@ impl<'w, 'a> Policy<'w, 'a> {
         let newest = self.newest;
         let slots: [usize; MAX_OBS_STEPS] =
             core::array::from_fn(|frame| self.history_slot(frames, frame.min(frames - 1)));
-        let kernels = self.kernels;
+        let (kernels, workers) = (self.kernels, self.workers);
         let weights = self.model.weights();
         let plan = self.plan;
         let normalizer = weights.normalizer;
         let buffers = self.buffers();
+        let (split_scratch, unet_scratch) = buffers.scratch.split_at_mut(plan.unet_split);
+        let split = Split::new(kernels, workers, split_scratch);
+        let kernels: &dyn Kernels = if workers.count() > 1 { &split } else { kernels };
 
         let sample = &mut buffers.sample[..sequence];
         match noise {
@@ -467,7 +492,7 @@ impl<'w, 'a> Policy<'w, 'a> {
             for (out, &value) in activated.iter_mut().zip(global_cond) {
                 *out = mish(value);
             }
-            let mut carver = Carver::new(&mut *buffers.scratch);
+            let mut carver = Carver::new(&mut *unet_scratch);
             let work = [
                 carver.take(plan.unet_work),
                 carver.take(plan.unet_work),
@@ -546,6 +571,12 @@ impl<'w, 'a> Policy<'w, 'a> {
         }
         let slot = self.history_slot(frames, frame);
         let (kernels, weights, layout) = (self.kernels, self.model.weights(), self.plan.frame);
+        let split = Split::new(kernels, self.workers, &mut []);
+        let kernels: &dyn Kernels = if self.workers.count() > 1 {
+            &split
+        } else {
+            kernels
+        };
         // The frames are the arena's first buffer (see `buffers`).
         let region = &mut self.arena[slot * layout.total..][..layout.total];
         let mut store = FrameStore::new(region, &layout);

@@ -21,8 +21,14 @@ pub struct ConvShape {
     pub kernel_height: usize,
     pub kernel_width: usize,
     pub stride: usize,
+    /// Zero rows above the input (and, unless [`padding_bottom`](Self::padding_bottom) says
+    /// otherwise, below it: PyTorch pads both sides alike).
     pub padding_height: usize,
     pub padding_width: usize,
+    /// Zero rows below the input. Equal to `padding_height` in every layer of the model;
+    /// a band of a layer's output rows (one worker's share) is the same convolution over
+    /// the input rows it reads, padded only on the sides where the layer's map ends.
+    pub padding_bottom: usize,
 }
 
 impl ConvShape {
@@ -44,6 +50,7 @@ impl ConvShape {
             stride,
             padding_height: padding,
             padding_width: padding,
+            padding_bottom: padding,
         }
     }
 
@@ -66,6 +73,7 @@ impl ConvShape {
             stride,
             padding_height: 0,
             padding_width: padding,
+            padding_bottom: 0,
         }
     }
 
@@ -75,16 +83,38 @@ impl ConvShape {
             && self.kernel_width == 1
             && self.stride == 1
             && self.padding_height == 0
+            && self.padding_bottom == 0
             && self.padding_width == 0
     }
 
     pub const fn out_height(&self) -> usize {
-        conv_output(
-            self.in_height,
-            self.kernel_height,
-            self.stride,
-            self.padding_height,
-        )
+        (self.in_height + self.padding_height + self.padding_bottom - self.kernel_height)
+            / self.stride
+            + 1
+    }
+
+    /// The convolution computing only output rows `first .. first + rows` (inside
+    /// [`out_height`](Self::out_height)), and the input rows it reads (`start .. start +
+    /// its in_height`): every output pixel sees the same taps, in the same places, as in
+    /// the whole convolution, so a kernel gives it the same bits.
+    pub const fn row_band(&self, first: usize, rows: usize) -> (ConvShape, usize) {
+        // Padded coordinates: input row `y` is padded row `y + padding_height`.
+        let top = first * self.stride;
+        let bottom = (first + rows - 1) * self.stride + self.kernel_height;
+        let start = top.saturating_sub(self.padding_height);
+        let end_padded = self.padding_height + self.in_height;
+        let end = if bottom < end_padded {
+            bottom - self.padding_height
+        } else {
+            self.in_height
+        };
+        let band = ConvShape {
+            in_height: end - start,
+            padding_height: (start + self.padding_height) - top,
+            padding_bottom: bottom - (end + self.padding_height),
+            ..*self
+        };
+        (band, start)
     }
 
     pub const fn out_width(&self) -> usize {

@@ -14,7 +14,7 @@ use scdp_engine::weights::{ActivationCodes, Weight};
 type TileLayout = ();
 use scdp_engine::kernels::{
     Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, NarrowForm, QuantizeScratch,
-    SignedByteRows,
+    SignedByteRows, Split, Workers,
 };
 
 struct Lcg(u64);
@@ -2635,5 +2635,173 @@ fn a_refined_layer_adds_its_residual_plane() {
             &expected,
             &format!("refined on {name}"),
         );
+    }
+}
+
+/// Workers that run the pieces backwards on the calling thread, counting the calls cut.
+struct Backwards {
+    count: usize,
+    calls: std::sync::atomic::AtomicUsize,
+}
+
+impl Workers for Backwards {
+    fn count(&self) -> usize {
+        self.count
+    }
+
+    fn run(&self, pieces: usize, work: &(dyn Fn(usize) + Sync)) {
+        self.calls
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        (0..pieces).rev().for_each(work)
+    }
+}
+
+/// Every call `Split` cuts (bands of output rows of 2-D convolutions, runs of pixels of
+/// pointwise ones, blocks of output channels of 1-D ones, runs of matrix rows) gives the bits
+/// of the whole call on the same backend, for 2, 3 and 5 workers (uneven and empty pieces),
+/// whatever order the pieces run in, both accumulation modes; and it did cut each.
+#[test]
+fn calls_cut_over_workers_give_the_whole_calls_bits_on_every_backend() {
+    let mut rng = Lcg(41);
+    // 2-D: the trunk's kinds (7x7 stride 2 with padding 3, 3x3 strides 1 and 2, 1x1 stride
+    // 2 shortcuts, the 3x3 projections), maps from 2 to 13 rows.
+    let maps = [
+        ConvShape::square((13, 11, 3), 16, 7, 2, 3),
+        ConvShape::square((9, 7, 16), 32, 3, 1, 1),
+        ConvShape::square((10, 6, 24), 40, 3, 2, 1),
+        ConvShape::square((8, 8, 32), 64, 1, 2, 0),
+        ConvShape::square((4, 5, 12), 16, 3, 1, 1),
+        ConvShape::square((1, 37, 196), 64, 1, 1, 0),
+    ];
+    // 1-D: the U-Net's (blocks of 64 output channels, a partial last one, Add).
+    let sequences = [
+        ConvShape::sequence(16, 10, 128, 5, 1, 2),
+        ConvShape::sequence(8, 128, 256, 5, 1, 2),
+        ConvShape::sequence(4, 96, 320, 3, 1, 1),
+        ConvShape::sequence(16, 64, 200, 1, 1, 0),
+    ];
+    for (name, kernels) in backends() {
+        for count in [2, 3, 5] {
+            let workers = Backwards {
+                count,
+                calls: Default::default(),
+            };
+            let mut scratch = vec![0.0f32; 16 * 1024];
+            let split = Split::new(kernels, &workers, &mut scratch).cutting_every_call();
+            let cut = |what: &str| {
+                let calls = workers.calls.swap(0, std::sync::atomic::Ordering::Relaxed);
+                assert!(calls > 0, "{name}, {count} workers: {what} was not cut");
+            };
+            for shape in maps.iter().chain(&sequences) {
+                let what = format!("{name}, {count} workers, {shape:?}");
+                let input = rng.vec(shape.input_len());
+                let weight = rng.vec(shape.weight_len());
+                let bias = rng.vec(shape.out_channels);
+                let initial = rng.vec(shape.output_len());
+                for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
+                    let run = |kernels: &dyn Kernels| {
+                        let mut output = initial.clone();
+                        kernels.conv(shape, &input, &weight, &bias, &mut output, accumulate);
+                        output
+                    };
+                    let found = run(&split);
+                    assert_same_bits(&found, &run(kernels), &format!("f32 {what} {accumulate:?}"));
+                    // Scalar f32 sequences have no channel form, and runs of positions
+                    // would change the SIMD sequences' order: they run whole.
+                    if shape.in_height > 1 || name != "scalar" && shape.in_width <= 16 {
+                        cut("f32 conv");
+                    }
+                }
+                let problem = Int8Case::random(&mut rng, *shape, true);
+                let mut code_case = CodeCase::random(&mut rng, *shape);
+                for accumulate in [Accumulate::Overwrite, Accumulate::Add] {
+                    let what = format!("int8 {what} {accumulate:?}");
+                    if shape.in_height > 1
+                        || shape.is_pointwise()
+                            && shape.kernel_width == 1
+                            && shape.in_channels == 196
+                    {
+                        let found = problem.run(&split, accumulate, &initial);
+                        assert_same_bits(
+                            &found,
+                            &problem.run(kernels, accumulate, &initial),
+                            &what,
+                        );
+                        cut("int8 conv");
+                        let bytes: Vec<u8> =
+                            problem.values.iter().map(|&v| (v & 255) as u8).collect();
+                        let byte_run = |kernels: &dyn Kernels| {
+                            let (packed, _) = problem.packed();
+                            let input = ByteRows {
+                                bytes: &bytes,
+                                scale: problem.scale,
+                            };
+                            let mut output = initial.clone();
+                            kernels.conv_int8_bytes(
+                                shape,
+                                &input,
+                                &packed,
+                                &problem.weight_scales,
+                                &problem.bias,
+                                &mut output,
+                                accumulate,
+                            );
+                            output
+                        };
+                        assert_same_bits(
+                            &byte_run(&split),
+                            &byte_run(kernels),
+                            &format!("bytes {what}"),
+                        );
+                        cut("byte conv");
+                    } else {
+                        let found = code_case.run(&split, accumulate, &initial);
+                        assert_same_bits(
+                            &found,
+                            &code_case.run(kernels, accumulate, &initial),
+                            &what,
+                        );
+                        cut("code conv");
+                        let wide = std::mem::take(&mut code_case.codes);
+                        code_case.codes = wide.iter().map(|code| code % 128).collect();
+                        let found = code_case.run_signed_bytes(&split, accumulate, &initial);
+                        let whole = code_case.run_signed_bytes(kernels, accumulate, &initial);
+                        assert_same_bits(&found, &whole, &format!("signed bytes {what}"));
+                        cut("signed byte conv");
+                        code_case.codes = wide;
+                    }
+                }
+            }
+            // The FiLM products.
+            let (rows, cols) = (200, 72);
+            let weight = rng.vec(rows * cols);
+            let input = rng.vec(cols);
+            let base = rng.vec(rows);
+            let matvec = |kernels: &dyn Kernels| {
+                let mut output = vec![0.0; rows];
+                kernels.matvec(&weight, &input, &base, &mut output);
+                output
+            };
+            assert_same_bits(&matvec(&split), &matvec(kernels), &format!("{name} matvec"));
+            cut("matvec");
+            let weight = random_i8(&mut rng, rows * cols);
+            let codes = padded_codes(&random_codes(&mut rng, cols, false), cols);
+            let scales = rng.vec(rows);
+            let int8_matvec = |kernels: &dyn Kernels| {
+                let input = CodeRows {
+                    codes: &codes,
+                    scale: 0.02,
+                };
+                let mut output = vec![0.0; rows];
+                kernels.matvec_int8_codes(&weight, &scales, &input, &base, &mut output);
+                output
+            };
+            assert_same_bits(
+                &int8_matvec(&split),
+                &int8_matvec(kernels),
+                &format!("{name} int8 matvec"),
+            );
+            cut("int8 matvec");
+        }
     }
 }

@@ -22,8 +22,13 @@ pub mod ops;
 pub mod scalar;
 #[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
 pub(crate) mod simd;
+pub mod split;
+pub mod workers;
 #[cfg(target_arch = "x86_64")]
 pub mod x86_64;
+
+pub use split::Split;
+pub use workers::{Sequential, Workers};
 
 use ops::Activation;
 
@@ -280,6 +285,29 @@ pub trait Kernels: Sync {
     ) {
         let parameters = (weight, weight_scales, bias);
         each_pixel(self, shape, input, parameters, pixels, output)
+    }
+
+    /// Output channels `channels` of [`conv`](Self::conv) on a 1-D convolution
+    /// (`in_height == 1`), into `output` (`[positions, channels.len()]`, holding those
+    /// channels' values before the call for [`Accumulate::Add`]; `bias` is the whole
+    /// layer's): bit for bit what `conv` writes at those channels, for `channels` starting
+    /// at a multiple of 64. Returns `false`, writing nothing, where this implementation has
+    /// no such form for `shape` (this default: never), whatever `channels`; so empty
+    /// `channels` only ask. The U-Net's f32 layers are cut by output channels over several
+    /// workers this way ([`split::Split`]), each worker reading its own share of the
+    /// weights.
+    #[allow(clippy::too_many_arguments)]
+    fn conv_channels(
+        &self,
+        _shape: &ConvShape,
+        _input: &[f32],
+        _weight: &[f32],
+        _bias: &[f32],
+        _channels: core::ops::Range<usize>,
+        _output: &mut [f32],
+        _accumulate: Accumulate,
+    ) -> bool {
+        false
     }
 
     /// `output[r] = base[r] + sum_c weight[r, c] input[c]` for a row-major `[rows, cols]`.

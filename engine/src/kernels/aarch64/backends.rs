@@ -199,6 +199,27 @@ macro_rules! shared_kernels {
             conv_pixel_f32(shape, (input, weight, bias), pixel, output)
         }
 
+        fn conv_channels(
+            &self,
+            shape: &ConvShape,
+            input: &[f32],
+            weight: &[f32],
+            bias: &[f32],
+            channels: core::ops::Range<usize>,
+            output: &mut [f32],
+            accumulate: Accumulate,
+        ) -> bool {
+            if channels.end > bias.len() || channels.start > channels.end {
+                return false;
+            }
+            let parameters = (input, weight, &bias[channels.clone()]);
+            // SAFETY: the backends exist only on NEON targets.
+            unsafe {
+                sequence::neon::conv_channels(shape, parameters, channels, output, accumulate)
+            }
+            .is_some()
+        }
+
         fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
             // SAFETY: the backends exist only on NEON targets.
             unsafe { sequence::matvec(weight, input, base, output) }

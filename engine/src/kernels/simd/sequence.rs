@@ -38,15 +38,18 @@ impl Sequence {
     /// The 1-D convolution `shape` describes, if it is one (one input row, one kernel row,
     /// no vertical padding).
     pub(crate) fn from_shape(shape: &ConvShape) -> Option<Sequence> {
-        (shape.in_height == 1 && shape.kernel_height == 1 && shape.padding_height == 0).then(|| {
-            Sequence::convolution(
-                shape.in_width,
-                (shape.in_channels, shape.out_channels),
-                shape.kernel_width,
-                shape.stride,
-                shape.padding_width,
-            )
-        })
+        (shape.in_height == 1
+            && shape.kernel_height == 1
+            && shape.padding_height + shape.padding_bottom == 0)
+            .then(|| {
+                Sequence::convolution(
+                    shape.in_width,
+                    (shape.in_channels, shape.out_channels),
+                    shape.kernel_width,
+                    shape.stride,
+                    shape.padding_width,
+                )
+            })
     }
 
     /// A convolution with kernel `taps`, `stride` and zero `padding`.
@@ -182,7 +185,7 @@ const MATVEC_PREFETCH: usize = 4096;
 
 /// Up to this many output positions (every U-Net layer of the product models), f32
 /// weights are streamed ([`convolve_streaming`]); longer sequences use the register tiles.
-const STREAMING_POSITIONS: usize = 16;
+pub(crate) const STREAMING_POSITIONS: usize = 16;
 
 /// [`convolve`] with f32 weights, by whichever loop is faster for the sequence length.
 ///
@@ -235,8 +238,38 @@ unsafe fn convolve_streaming<L: Lanes>(
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
-    let (in_channels, out_channels) = (sequence.in_channels, sequence.out_channels);
-    sequence.assert_lengths(input.len(), weight.len(), output.len(), bias.len());
+    let columns = 0..sequence.out_channels;
+    // SAFETY: the caller's promise.
+    unsafe { convolve_columns::<L>(sequence, (input, weight, bias), columns, output, accumulate) }
+}
+
+/// [`convolve_streaming`] for output channels `columns` only: `bias` and `output`
+/// (`[positions, columns.len()]`) hold just those, `weight` is the whole kernel. Each
+/// channel's sum is the same chain as in the whole convolution, so the same bits, as long
+/// as `columns` starts at a whole vector (the channels of the last, partial vector are
+/// summed unfused, in both).
+///
+/// # Safety
+/// The CPU supports `L`.
+///
+/// # Panics
+/// If a slice is shorter than `sequence` needs, `columns` is not inside its output channels
+/// or does not start at a multiple of `L::WIDTH`.
+#[inline(always)]
+pub(crate) unsafe fn convolve_columns<L: Lanes>(
+    sequence: &Sequence,
+    (input, weight, bias): (&[f32], &[f32], &[f32]),
+    columns: core::ops::Range<usize>,
+    output: &mut [f32],
+    accumulate: Accumulate,
+) {
+    let (in_channels, row_stride) = (sequence.in_channels, sequence.out_channels);
+    let out_channels = columns.len();
+    assert!(columns.end <= row_stride && columns.start.is_multiple_of(L::WIDTH));
+    assert!(input.len() >= sequence.in_length * in_channels);
+    assert!(weight.len() >= sequence.taps * in_channels * row_stride);
+    assert!(output.len() >= sequence.positions * out_channels);
+    assert_eq!(bias.len(), out_channels);
     assert!(sequence.positions <= STREAMING_POSITIONS);
     for position in 0..sequence.positions {
         let out = &mut output[position * out_channels..][..out_channels];
@@ -251,7 +284,8 @@ unsafe fn convolve_streaming<L: Lanes>(
         if start >= end {
             continue;
         }
-        let block = &weight[tap * in_channels * out_channels..][..in_channels * out_channels];
+        let block = &weight[tap * in_channels * row_stride + columns.start..]
+            [..(in_channels - 1) * row_stride + out_channels];
         let input_row = (start * sequence.stride) as isize + offset;
         let tap_input = &input[input_row as usize * in_channels..];
         let out = &mut output[start * out_channels..];
@@ -268,7 +302,7 @@ unsafe fn convolve_streaming<L: Lanes>(
                                 block,
                                 (tap_input, out),
                                 strides,
-                                (in_channels, out_channels),
+                                (in_channels, row_stride, out_channels),
                             )
                         },
                     )*
@@ -291,7 +325,8 @@ const STREAMED_ROWS: usize = 8;
 
 /// One tap of [`convolve_streaming`] for `P + Q` consecutive output positions:
 /// `out[p] += sum_c input[p, c] block[c]`, `input` and `out` from the first position's rows,
-/// the positions `strides` floats apart in each. The sums of the first `P` positions, then
+/// the positions `strides` floats apart in each; `block`'s rows are `row_stride` floats
+/// apart, `out_channels` of each read. The sums of the first `P` positions, then
 /// of the other `Q`, stay in registers over a block of rows (at most 8 positions at a time;
 /// all 16 at once spilled).
 ///
@@ -305,7 +340,7 @@ unsafe fn stream_tap<L: Lanes, const P: usize, const Q: usize>(
     block: &[f32],
     (input, out): (&[f32], &mut [f32]),
     (input_stride, out_stride): (usize, usize),
-    (in_channels, out_channels): (usize, usize),
+    (in_channels, row_stride, out_channels): (usize, usize, usize),
 ) {
     let positions = P + Q;
     assert!(input.len() >= (positions - 1) * input_stride + in_channels);
@@ -314,18 +349,19 @@ unsafe fn stream_tap<L: Lanes, const P: usize, const Q: usize>(
     let (input, out) = (input.as_ptr(), out.as_mut_ptr());
     for first_row in (0..in_channels).step_by(STREAMED_ROWS) {
         let rows = (in_channels - first_row).min(STREAMED_ROWS);
-        let weights = block[first_row * out_channels..][..rows * out_channels].as_ptr();
+        let weights =
+            block[first_row * row_stride..][..(rows - 1) * row_stride + out_channels].as_ptr();
         let ahead = weights.wrapping_byte_add(STREAMING_PREFETCH);
         for channel in (0..vector_channels).step_by(L::WIDTH) {
             // The lines `STREAMING_PREFETCH` ahead of the ones this vector reads, spread over
             // the loop (asked for all at once, they filled the line buffers and stalled it).
             for row in 0..rows {
-                prefetch_lines_into_l2(ahead.wrapping_add(row * out_channels + channel), 1);
+                prefetch_lines_into_l2(ahead.wrapping_add(row * row_stride + channel), 1);
             }
             let lanes = weights.wrapping_add(channel);
             let at = (first_row, channel);
             let strides = (input_stride, out_stride);
-            let rows = (rows, out_channels);
+            let rows = (rows, row_stride);
             // SAFETY: the rows and channels are inside `block`, the positions' sums inside
             // `out` and their values inside `input` (asserted above); the caller runs on
             // `L`'s CPU.
@@ -341,10 +377,7 @@ unsafe fn stream_tap<L: Lanes, const P: usize, const Q: usize>(
         if vector_channels < out_channels {
             let tail = (out_channels - vector_channels) * size_of::<f32>();
             for row in 0..rows {
-                prefetch_lines(
-                    ahead.wrapping_add(row * out_channels + vector_channels),
-                    tail,
-                );
+                prefetch_lines(ahead.wrapping_add(row * row_stride + vector_channels), tail);
             }
         }
         // The channels past the last whole vector (the narrow noise head), one at a time in
@@ -353,7 +386,7 @@ unsafe fn stream_tap<L: Lanes, const P: usize, const Q: usize>(
             for row in 0..rows {
                 // SAFETY: as above.
                 unsafe {
-                    let w = *weights.add(row * out_channels + channel);
+                    let w = *weights.add(row * row_stride + channel);
                     for p in 0..positions {
                         let x = *input.add(p * input_stride + first_row + row);
                         *out.add(p * out_stride + channel) += x * w;
@@ -365,20 +398,20 @@ unsafe fn stream_tap<L: Lanes, const P: usize, const Q: usize>(
 }
 
 /// `out[p, channel..+WIDTH] += sum_r input[p, first_row + r] lanes[r]` for `P` positions and
-/// `rows` weight rows (`lanes`: the first row's vector, rows `out_channels` apart), the sums
+/// `rows` weight rows (`lanes`: the first row's vector, rows `row_stride` apart), the sums
 /// in registers from the load to the store.
 ///
 /// # Safety
 /// The CPU supports `L`; `input` is readable and `out` writable at `p * stride + ...` for
 /// every `p < P` (`input` at `first_row .. first_row + rows`, `out` at `channel ..
-/// channel + WIDTH`); `lanes` holds `rows` rows of `WIDTH` floats `out_channels` apart.
+/// channel + WIDTH`); `lanes` holds `rows` rows of `WIDTH` floats `row_stride` apart.
 #[inline(always)]
 unsafe fn stream_positions<L: Lanes, const P: usize>(
     (input, out): (*const f32, *mut f32),
     (input_stride, out_stride): (usize, usize),
     lanes: *const f32,
     (first_row, channel): (usize, usize),
-    (rows, out_channels): (usize, usize),
+    (rows, row_stride): (usize, usize),
 ) {
     // SAFETY (this block): the caller's promises. Loops, not `array::from_fn`: a closure
     // does not inherit the caller's target features, and its intrinsics would become calls.
@@ -388,7 +421,7 @@ unsafe fn stream_positions<L: Lanes, const P: usize>(
             *sum = L::load(out.add(p * out_stride + channel));
         }
         for row in 0..rows {
-            let weights = L::load(lanes.add(row * out_channels));
+            let weights = L::load(lanes.add(row * row_stride));
             for (p, sum) in sums.iter_mut().enumerate() {
                 let x = L::splat(*input.add(p * input_stride + first_row + row));
                 *sum = L::fma(x, weights, *sum);
@@ -682,6 +715,55 @@ macro_rules! backend {
                 assert_conv_lengths(shape, (input, weight, bias), output.len());
                 // SAFETY: the caller vouches for the CPU.
                 unsafe { convolve_f32(&sequence, input, weight, bias, output, accumulate) };
+                Some(())
+            }
+
+            /// `convolve_columns` on this backend's vectors.
+            ///
+            /// # Safety
+            /// The CPU supports the backend's features.
+            #[target_feature(enable = $features)]
+            unsafe fn convolve_columns(
+                sequence: &Sequence,
+                parameters: (&[f32], &[f32], &[f32]),
+                columns: core::ops::Range<usize>,
+                output: &mut [f32],
+                accumulate: Accumulate,
+            ) {
+                // SAFETY: this function's contract is the body's.
+                unsafe {
+                    $crate::kernels::simd::sequence::convolve_columns::<$lanes>(
+                        sequence, parameters, columns, output, accumulate,
+                    )
+                }
+            }
+
+            /// `Kernels::conv_channels`: `None` (nothing done) where `conv` would not
+            /// stream this shape's weights.
+            ///
+            /// # Safety
+            /// The CPU supports the backend's features.
+            pub(crate) unsafe fn conv_channels(
+                shape: &ConvShape,
+                parameters: (&[f32], &[f32], &[f32]),
+                columns: core::ops::Range<usize>,
+                output: &mut [f32],
+                accumulate: Accumulate,
+            ) -> Option<()> {
+                let sequence = Sequence::from_shape(shape)?;
+                let streams =
+                    sequence.positions <= $crate::kernels::simd::sequence::STREAMING_POSITIONS;
+                let whole_vector = columns
+                    .start
+                    .is_multiple_of(<$lanes as $crate::kernels::simd::lanes::Lanes>::WIDTH);
+                if !streams || !whole_vector || columns.end > shape.out_channels {
+                    return None;
+                }
+                if columns.is_empty() {
+                    return Some(());
+                }
+                // SAFETY: the caller vouches for the CPU.
+                unsafe { convolve_columns(&sequence, parameters, columns, output, accumulate) };
                 Some(())
             }
         }

@@ -278,6 +278,20 @@ impl Kernels for Amx {
             .conv(shape, input, weight, bias, output, accumulate)
     }
 
+    fn conv_channels(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[f32],
+        bias: &[f32],
+        channels: core::ops::Range<usize>,
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) -> bool {
+        self.avx512
+            .conv_channels(shape, input, weight, bias, channels, output, accumulate)
+    }
+
     fn conv_pixel(
         &self,
         shape: &ConvShape,

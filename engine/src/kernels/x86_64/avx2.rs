@@ -100,6 +100,25 @@ impl Kernels for Avx2 {
         unsafe { conv_tiles(shape, (input, weight, bias), output, accumulate) }
     }
 
+    fn conv_channels(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[f32],
+        bias: &[f32],
+        channels: core::ops::Range<usize>,
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) -> bool {
+        if channels.end > bias.len() || channels.start > channels.end {
+            return false;
+        }
+        let parameters = (input, weight, &bias[channels.clone()]);
+        // SAFETY: `self` exists only when AVX2 and FMA were detected.
+        unsafe { sequence::avx2::conv_channels(shape, parameters, channels, output, accumulate) }
+            .is_some()
+    }
+
     fn conv_pixel(
         &self,
         shape: &ConvShape,

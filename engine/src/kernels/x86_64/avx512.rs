@@ -72,6 +72,30 @@ impl Kernels for Avx512 {
         unsafe { avx512_f32::conv(shape, (input, weight, bias), output, accumulate) }
     }
 
+    fn conv_channels(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[f32],
+        bias: &[f32],
+        channels: core::ops::Range<usize>,
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) -> bool {
+        // As `conv`: AVX2 runs the layers whose channels it splits otherwise.
+        if shape.out_channels % 16 >= 8 {
+            let avx2 = self.avx2();
+            return avx2.conv_channels(shape, input, weight, bias, channels, output, accumulate);
+        }
+        if channels.end > bias.len() || channels.start > channels.end {
+            return false;
+        }
+        let parameters = (input, weight, &bias[channels.clone()]);
+        // SAFETY: `self` exists only when AVX-512 F/BW/VL were detected.
+        unsafe { sequence::avx512::conv_channels(shape, parameters, channels, output, accumulate) }
+            .is_some()
+    }
+
     fn conv_pixel(
         &self,
         shape: &ConvShape,

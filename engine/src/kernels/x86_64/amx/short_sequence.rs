@@ -50,7 +50,7 @@ type PassSums = [TileBuffer; PASS_TILES];
 pub(super) fn applies(shape: &ConvShape, channels: usize) -> bool {
     shape.in_height == 1
         && shape.kernel_height == 1
-        && shape.padding_height == 0
+        && shape.padding_height + shape.padding_bottom == 0
         && shape.out_width() <= POSITIONS
         && applies_to_cells(shape, channels)
 }

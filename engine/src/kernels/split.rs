@@ -1,0 +1,702 @@
+//! One kernel call cut into a piece per worker ([`Workers`]), each piece the same kernel on a
+//! smaller problem, so every output value comes out of the same sums in the same order as
+//! from the whole call, whatever the number of workers:
+//! - 2-D convolutions (the trunk, the projections): bands of output rows, each over the
+//!   input rows its taps read ([`ConvShape::row_band`]); the stem's pointwise patches:
+//!   runs of pixels;
+//! - the U-Net's 1-D convolutions: blocks of 64 output channels, so each worker reads its
+//!   own share of the weights, which is where the loop's time goes (an int8 block's weights
+//!   lie together, [`INT8_CHANNEL_BLOCK`]; f32 ones are read a row segment at a time,
+//!   [`Kernels::conv_channels`]). A block's outputs are computed into its part of a scratch
+//!   buffer, then copied (or added) into place;
+//! - the FiLM products: runs of rows.
+//!
+//! Everything else (the element-wise operations, GroupNorm, the projections evaluated a
+//! few cells at a time) runs whole on the caller.
+
+use core::ops::Range;
+use core::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+use super::workers::Workers;
+use super::{
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, Kernels, NarrowForm,
+    SignedByteRows, ops::Activation,
+};
+
+/// One band of a convolution: its shape, the input range it reads, its output.
+type Band<'b> = dyn Fn(&ConvShape, Range<usize>, &mut [f32]) + Sync + 'b;
+
+/// An int8 convolution's weights, weight scales and biases.
+type Int8Parameters<'p> = (&'p [i8], &'p [f32], &'p [f32]);
+
+/// Multiply-adds below which a call runs whole: handing pieces to the other cores costs a
+/// microsecond or so.
+const MIN_SPLIT_PRODUCTS: usize = 1 << 16;
+
+/// [`Kernels`] that cut each heavy call over `workers` and run `kernels` on the pieces.
+pub struct Split<'s> {
+    kernels: &'s dyn Kernels,
+    workers: &'s dyn Workers,
+    scratch: Shared,
+    /// Multiply-adds below which a call runs whole.
+    min_products: usize,
+    /// Held while a call uses `scratch`.
+    busy: AtomicBool,
+    _scratch: core::marker::PhantomData<&'s mut [f32]>,
+}
+
+impl core::fmt::Debug for Split<'_> {
+    fn fmt(&self, formatter: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        formatter
+            .debug_struct("Split")
+            .field("kernels", &self.kernels.name())
+            .field("workers", &self.workers.count())
+            .finish()
+    }
+}
+
+impl<'s> Split<'s> {
+    /// `kernels` over `workers`; `scratch` holds a channel-split call's outputs (a call
+    /// whose output it cannot hold runs whole).
+    pub fn new(kernels: &'s dyn Kernels, workers: &'s dyn Workers, scratch: &'s mut [f32]) -> Self {
+        Split {
+            kernels,
+            workers,
+            scratch: Shared::new(scratch),
+            min_products: MIN_SPLIT_PRODUCTS,
+            busy: AtomicBool::new(false),
+            _scratch: core::marker::PhantomData,
+        }
+    }
+
+    /// Cuts every call it can, however small (the tests' small shapes; the same bits).
+    #[must_use]
+    pub fn cutting_every_call(mut self) -> Self {
+        self.min_products = 0;
+        self
+    }
+
+    /// Pieces for `units` units of work of `products` multiply-adds in all: at most one a
+    /// worker and one a unit; 1 (run whole) when too small to share.
+    fn pieces(&self, units: usize, products: usize) -> usize {
+        if products < self.min_products {
+            return 1;
+        }
+        self.workers.count().min(units).max(1)
+    }
+
+    /// Runs `band(shape, input range, output)` on bands of output rows (or, for a
+    /// pointwise convolution over one row, runs of pixels) with their own output slices;
+    /// `false` when the call is not cut (the caller runs it whole).
+    fn split_rows(
+        &self,
+        shape: &ConvShape,
+        input_len: usize,
+        output: &mut [f32],
+        band: &Band<'_>,
+    ) -> bool {
+        let products =
+            shape.output_len() * shape.kernel_height * shape.kernel_width * shape.in_channels;
+        let row_len = shape.in_width * shape.in_channels;
+        let out_row = shape.out_width() * shape.out_channels;
+        let rows_apply = shape.in_height > 1
+            && shape.padding_bottom == shape.padding_height
+            && shape.padding_height < shape.kernel_height;
+        let pixels_apply = shape.in_height == 1 && shape.is_pointwise();
+        let units = if rows_apply {
+            shape.out_height()
+        } else if pixels_apply {
+            shape.in_width
+        } else {
+            return false;
+        };
+        // At least two output rows a band: a band of one row of a 1x1 convolution would
+        // read one input row, which the kernels take for a sequence and sum in another
+        // order.
+        let most = if rows_apply { units / 2 } else { units };
+        let pieces = self.pieces(most, products);
+        if pieces < 2 || input_len < shape.input_len() || output.len() < shape.output_len() {
+            return false;
+        }
+        let out = Shared::new(&mut output[..shape.output_len()]);
+        self.workers.run(pieces, &|piece| {
+            let units = share(units, pieces, piece);
+            if units.is_empty() {
+                return;
+            }
+            let (part, inputs, outputs) = if rows_apply {
+                let (part, start) = shape.row_band(units.start, units.len());
+                let inputs = start * row_len..(start + part.in_height) * row_len;
+                (part, inputs, units.start * out_row..units.end * out_row)
+            } else {
+                let part = ConvShape {
+                    in_width: units.len(),
+                    ..*shape
+                };
+                let (channels, out_channels) = (shape.in_channels, shape.out_channels);
+                let inputs = units.start * channels..units.end * channels;
+                (
+                    part,
+                    inputs,
+                    units.start * out_channels..units.end * out_channels,
+                )
+            };
+            // SAFETY: the pieces' output ranges are disjoint parts of `output`, which the
+            // caller does not touch until `run` has returned.
+            let output = unsafe { out.slice(outputs) };
+            band(&part, inputs, output);
+        });
+        true
+    }
+
+    /// Runs `block(channels, output)` of a 1-D convolution on blocks of output channels
+    /// (`channels` the range, a multiple of [`INT8_CHANNEL_BLOCK`] wide but for the last,
+    /// `output` its `[positions, channels]` part of the scratch: written over, or holding
+    /// those channels' output values first with [`Store::Continue`]), then puts each into
+    /// place as `store` says; `false` when the call is not cut, or when `block` declined
+    /// every piece (it declines all or none: its answer depends on the shape alone).
+    fn split_channels(
+        &self,
+        shape: &ConvShape,
+        weight_products: usize,
+        output: &mut [f32],
+        store: Store,
+        block: &(dyn Fn(Range<usize>, &mut [f32]) -> bool + Sync),
+    ) -> bool {
+        let out_channels = shape.out_channels;
+        let positions = shape.out_height() * shape.out_width();
+        let blocks = out_channels.div_ceil(INT8_CHANNEL_BLOCK);
+        let pieces = self.pieces(blocks, positions * weight_products);
+        let fits = output.len() >= positions * out_channels
+            && self.scratch.len >= positions * out_channels;
+        if pieces < 2 || !fits {
+            return false;
+        }
+        if self.busy.swap(true, Ordering::Acquire) {
+            return false;
+        }
+        let (scratch, out) = (self.scratch, Shared::new(output));
+        let done = AtomicUsize::new(0);
+        self.workers.run(pieces, &|piece| {
+            let blocks = share(blocks, pieces, piece);
+            let start = blocks.start * INT8_CHANNEL_BLOCK;
+            let end = (blocks.end * INT8_CHANNEL_BLOCK).min(out_channels);
+            if start >= end {
+                done.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
+            let width = end - start;
+            // SAFETY: the pieces' channel ranges are disjoint, so are their parts of the
+            // scratch, which `busy` keeps for this call alone.
+            let values = unsafe { scratch.slice(positions * start..positions * end) };
+            // SAFETY (both blocks below): this piece's channels of one output row: disjoint
+            // from every other piece's, and the caller does not touch `output` until `run`
+            // has returned.
+            let row_of = |position: usize| unsafe {
+                let at = position * out_channels + start;
+                out.slice(at..at + width)
+            };
+            if store == Store::Continue {
+                for (position, row) in values.chunks_exact_mut(width).enumerate() {
+                    row.copy_from_slice(row_of(position));
+                }
+            }
+            if !block(start..end, values) {
+                return;
+            }
+            for (position, row) in values.chunks_exact(width).enumerate() {
+                let target = row_of(position);
+                match store {
+                    Store::Overwrite | Store::Continue => target.copy_from_slice(row),
+                    // `output += (acc * scale + bias)`: the int8 contract's order exactly.
+                    Store::Add => target.iter_mut().zip(row).for_each(|(o, v)| *o += v),
+                }
+            }
+            done.fetch_add(1, Ordering::Relaxed);
+        });
+        self.busy.store(false, Ordering::Release);
+        let done = done.load(Ordering::Relaxed);
+        assert!(
+            done == 0 || done == pieces,
+            "a channel block was declined, not all"
+        );
+        done == pieces
+    }
+
+    /// Runs `rows(range, output)` on runs of a matrix-vector product's rows.
+    fn split_matrix_rows(
+        &self,
+        rows: usize,
+        cols: usize,
+        output: &mut [f32],
+        part: &(dyn Fn(Range<usize>, &mut [f32]) + Sync),
+    ) -> bool {
+        let pieces = self.pieces(rows, rows * cols);
+        if pieces < 2 || output.len() != rows {
+            return false;
+        }
+        let out = Shared::new(output);
+        self.workers.run(pieces, &|piece| {
+            let range = share(rows, pieces, piece);
+            // SAFETY: the pieces' row ranges are disjoint parts of `output`, which the
+            // caller does not touch until `run` has returned.
+            let output = unsafe { out.slice(range.clone()) };
+            part(range, output);
+        });
+        true
+    }
+}
+
+/// Output channels `channels` (starting at a block) of an int8 convolution: the same
+/// convolution with those outputs only, and their weights, scales and biases. The int8
+/// layout stores a block's weights together ([`INT8_CHANNEL_BLOCK`]), so they are one run.
+fn channel_block<'p>(
+    shape: &ConvShape,
+    (weight, scales, bias): Int8Parameters<'p>,
+    channels: Range<usize>,
+) -> (ConvShape, Int8Parameters<'p>) {
+    let per_channel = shape.int8_weight_len() / shape.out_channels.max(1);
+    let part = ConvShape {
+        out_channels: channels.len(),
+        ..*shape
+    };
+    let weights = &weight[channels.start * per_channel..channels.end * per_channel];
+    (part, (weights, &scales[channels.clone()], &bias[channels]))
+}
+
+/// Whether an int8 convolution's parameters are as long as its shape says (the kernels
+/// assert it; a call that breaks it runs whole, to fail there).
+fn int8_lengths_hold(shape: &ConvShape, (weight, scales, bias): (&[i8], &[f32], &[f32])) -> bool {
+    let out_channels = shape.out_channels;
+    weight.len() == shape.int8_weight_len()
+        && scales.len() == out_channels
+        && bias.len() == out_channels
+}
+
+/// An int8 block's results, overwriting or added as the call says.
+fn store(accumulate: Accumulate) -> Store {
+    match accumulate {
+        Accumulate::Overwrite => Store::Overwrite,
+        Accumulate::Add => Store::Add,
+    }
+}
+
+/// How a channel block's results go into the output.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Store {
+    Overwrite,
+    /// Added (int8: `output += that`).
+    Add,
+    /// The block started from the output's values (f32 `Add`: the sums continue them) and
+    /// its results replace them.
+    Continue,
+}
+
+/// Piece `piece`'s share of `units` cut into `pieces`: sizes differ by at most one.
+fn share(units: usize, pieces: usize, piece: usize) -> Range<usize> {
+    units * piece / pieces..units * (piece + 1) / pieces
+}
+
+/// A mutable slice handed to several pieces, each taking its own disjoint part.
+#[derive(Clone, Copy, Debug)]
+struct Shared {
+    start: *mut f32,
+    len: usize,
+}
+
+// SAFETY: a `Shared` only hands out parts through `slice`, whose callers promise the parts
+// they take at the same time are disjoint.
+unsafe impl Send for Shared {}
+// SAFETY: as above.
+unsafe impl Sync for Shared {}
+
+impl Shared {
+    fn new(values: &mut [f32]) -> Self {
+        Shared {
+            start: values.as_mut_ptr(),
+            len: values.len(),
+        }
+    }
+
+    /// The values at `range`.
+    ///
+    /// # Safety
+    /// The slice this was made from outlives the result, nothing else reads or writes
+    /// those values meanwhile, and no other part taken meanwhile overlaps `range`.
+    unsafe fn slice<'a>(self, range: Range<usize>) -> &'a mut [f32] {
+        assert!(range.start <= range.end && range.end <= self.len);
+        // SAFETY: in bounds (asserted); exclusive by the caller's promise.
+        unsafe { core::slice::from_raw_parts_mut(self.start.add(range.start), range.len()) }
+    }
+}
+
+impl Kernels for Split<'_> {
+    fn name(&self) -> &'static str {
+        self.kernels.name()
+    }
+
+    fn conv(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let kernels = self.kernels;
+        let channel_form = shape.in_height == 1
+            && kernels.conv_channels(shape, input, weight, bias, 0..0, &mut [], accumulate);
+        if channel_form {
+            let block = |channels: Range<usize>, part: &mut [f32]| {
+                kernels.conv_channels(shape, input, weight, bias, channels, part, accumulate)
+            };
+            let products = shape.weight_len();
+            // f32 sums start from the output's value (`Add`): each block starts from its
+            // channels' values, and its results replace them.
+            let store = match accumulate {
+                Accumulate::Overwrite => Store::Overwrite,
+                Accumulate::Add => Store::Continue,
+            };
+            if !self.split_channels(shape, products, output, store, &block) {
+                kernels.conv(shape, input, weight, bias, output, accumulate)
+            }
+            return;
+        }
+        if shape.in_height == 1 {
+            // A sequence without a channel form: the f32 kernels sum short and long
+            // sequences in different orders, so runs of positions would change bits.
+            return kernels.conv(shape, input, weight, bias, output, accumulate);
+        }
+        let band = |part: &ConvShape, inputs: Range<usize>, output: &mut [f32]| {
+            kernels.conv(part, &input[inputs], weight, bias, output, accumulate)
+        };
+        if !self.split_rows(shape, input.len(), output, &band) {
+            kernels.conv(shape, input, weight, bias, output, accumulate)
+        }
+    }
+
+    fn conv_pixel(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[f32],
+        bias: &[f32],
+        pixel: (usize, usize),
+        output: &mut [f32],
+    ) {
+        self.kernels
+            .conv_pixel(shape, input, weight, bias, pixel, output)
+    }
+
+    fn conv_int8_pixel(
+        &self,
+        shape: &ConvShape,
+        input: &DigitRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        pixel: (usize, usize),
+        output: &mut [f32],
+    ) {
+        self.kernels
+            .conv_int8_pixel(shape, input, weight, weight_scales, bias, pixel, output)
+    }
+
+    fn conv_int8_pixels(
+        &self,
+        shape: &ConvShape,
+        input: &DigitRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        pixels: &[(usize, usize)],
+        output: &mut [f32],
+    ) {
+        self.kernels
+            .conv_int8_pixels(shape, input, weight, weight_scales, bias, pixels, output)
+    }
+
+    fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {
+        let (rows, cols, kernels) = (output.len(), input.len(), self.kernels);
+        let part = |range: Range<usize>, output: &mut [f32]| {
+            let weight = &weight[range.start * cols..range.end * cols];
+            kernels.matvec(weight, input, &base[range], output)
+        };
+        if cols == 0
+            || weight.len() != rows * cols
+            || !self.split_matrix_rows(rows, cols, output, &part)
+        {
+            kernels.matvec(weight, input, base, output)
+        }
+    }
+
+    fn conv_int8(
+        &self,
+        shape: &ConvShape,
+        input: &DigitRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let kernels = self.kernels;
+        let band = |part: &ConvShape, inputs: Range<usize>, output: &mut [f32]| {
+            let digits = DigitRows {
+                high: &input.high[inputs.clone()],
+                low: &input.low[inputs],
+                ..*input
+            };
+            kernels.conv_int8(
+                part,
+                &digits,
+                weight,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            )
+        };
+        let input_len = input.high.len().min(input.low.len());
+        if !self.split_rows(shape, input_len, output, &band) {
+            kernels.conv_int8(
+                shape,
+                input,
+                weight,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            )
+        }
+    }
+
+    fn conv_int8_bytes(
+        &self,
+        shape: &ConvShape,
+        input: &ByteRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let kernels = self.kernels;
+        let band = |part: &ConvShape, inputs: Range<usize>, output: &mut [f32]| {
+            let bytes = ByteRows {
+                bytes: &input.bytes[inputs],
+                ..*input
+            };
+            kernels.conv_int8_bytes(
+                part,
+                &bytes,
+                weight,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            )
+        };
+        if !self.split_rows(shape, input.bytes.len(), output, &band) {
+            kernels.conv_int8_bytes(
+                shape,
+                input,
+                weight,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            )
+        }
+    }
+
+    fn conv_int8_codes(
+        &self,
+        shape: &ConvShape,
+        input: &CodeRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let kernels = self.kernels;
+        let block = |channels: Range<usize>, output: &mut [f32]| {
+            let (part, (weight, scales, bias)) =
+                channel_block(shape, (weight, weight_scales, bias), channels);
+            let overwrite = Accumulate::Overwrite;
+            kernels.conv_int8_codes(&part, input, weight, scales, bias, output, overwrite);
+            true
+        };
+        let whole = !int8_lengths_hold(shape, (weight, weight_scales, bias))
+            || !self.split_channels(
+                shape,
+                shape.int8_weight_len(),
+                output,
+                store(accumulate),
+                &block,
+            );
+        if whole {
+            kernels.conv_int8_codes(
+                shape,
+                input,
+                weight,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            )
+        }
+    }
+
+    fn conv_int8_signed_bytes(
+        &self,
+        shape: &ConvShape,
+        input: &SignedByteRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let kernels = self.kernels;
+        let block = |channels: Range<usize>, output: &mut [f32]| {
+            let (part, (weight, scales, bias)) =
+                channel_block(shape, (weight, weight_scales, bias), channels);
+            let overwrite = Accumulate::Overwrite;
+            kernels.conv_int8_signed_bytes(&part, input, weight, scales, bias, output, overwrite);
+            true
+        };
+        let whole = !int8_lengths_hold(shape, (weight, weight_scales, bias))
+            || !self.split_channels(
+                shape,
+                shape.int8_weight_len(),
+                output,
+                store(accumulate),
+                &block,
+            );
+        if whole {
+            kernels.conv_int8_signed_bytes(
+                shape,
+                input,
+                weight,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            )
+        }
+    }
+
+    fn matvec_int8_codes(
+        &self,
+        weight: &[i8],
+        row_scales: &[f32],
+        input: &CodeRows<'_>,
+        base: &[f32],
+        output: &mut [f32],
+    ) {
+        let (rows, kernels) = (output.len(), self.kernels);
+        let cols = weight.len().checked_div(rows).unwrap_or(0);
+        let part = |range: Range<usize>, output: &mut [f32]| {
+            let weight = &weight[range.start * cols..range.end * cols];
+            kernels.matvec_int8_codes(
+                weight,
+                &row_scales[range.clone()],
+                input,
+                &base[range],
+                output,
+            )
+        };
+        let whole = cols == 0
+            || weight.len() != rows * cols
+            || row_scales.len() != rows
+            || base.len() != rows
+            || !self.split_matrix_rows(rows, cols, output, &part);
+        if whole {
+            kernels.matvec_int8_codes(weight, row_scales, input, base, output)
+        }
+    }
+
+    fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {
+        self.kernels.quantize_digits(input, digits)
+    }
+
+    fn narrow_form(&self) -> NarrowForm {
+        self.kernels.narrow_form()
+    }
+
+    fn quantize_narrow(&self, input: &[f32], scratch: &mut [i8], form: NarrowForm) -> f32 {
+        self.kernels.quantize_narrow(input, scratch, form)
+    }
+
+    fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
+        self.kernels.quantize_codes(input, row_len, codes)
+    }
+
+    fn quantize_signed_bytes(
+        &self,
+        input: &[f32],
+        row_len: usize,
+        codes: &mut [i8],
+        row_sums: &mut [i32],
+    ) -> f32 {
+        self.kernels
+            .quantize_signed_bytes(input, row_len, codes, row_sums)
+    }
+
+    fn quantize_narrow_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
+        self.kernels.quantize_narrow_codes(input, row_len, codes)
+    }
+
+    fn multiplies_signed_bytes(&self) -> bool {
+        self.kernels.multiplies_signed_bytes()
+    }
+
+    fn group_norm(
+        &self,
+        data: &mut [f32],
+        channels: usize,
+        groups: usize,
+        affine: (&[f32], &[f32]),
+        activation: Activation,
+    ) {
+        self.kernels
+            .group_norm(data, channels, groups, affine, activation)
+    }
+
+    fn add_activate(&self, target: &mut [f32], source: &[f32], activation: Activation) {
+        self.kernels.add_activate(target, source, activation)
+    }
+
+    fn add_channel_moments(
+        &self,
+        data: &[f32],
+        channels: usize,
+        moments: (&mut [f64], &mut [f64]),
+    ) {
+        self.kernels.add_channel_moments(data, channels, moments)
+    }
+
+    fn normalize_max_pool(
+        &self,
+        input: &[f32],
+        dims: (usize, usize, usize),
+        affine: (&[f32], &[f32]),
+        activation: Activation,
+        output: &mut [f32],
+    ) {
+        self.kernels
+            .normalize_max_pool(input, dims, affine, activation, output)
+    }
+
+    fn max_pool_3x3_stride_2(
+        &self,
+        input: &[f32],
+        dims: (usize, usize, usize),
+        output: &mut [f32],
+    ) {
+        self.kernels.max_pool_3x3_stride_2(input, dims, output)
+    }
+}
