@@ -330,12 +330,23 @@ pub fn run_engine(weights: &[u8], fixture: &Fixture) -> Result<EngineRun> {
 
 /// [`run_engine`] on a chosen kernel backend; fails if another one ran.
 pub fn run_engine_with(weights: &[u8], fixture: &Fixture, backend: Backend) -> Result<EngineRun> {
+    run_engine_on(weights, fixture, backend, &scdp_engine::kernels::Sequential)
+}
+
+/// [`run_engine_with`], each inference on `workers`.
+pub fn run_engine_on(
+    weights: &[u8],
+    fixture: &Fixture,
+    backend: Backend,
+    workers: &dyn scdp_engine::kernels::Workers,
+) -> Result<EngineRun> {
     let model = Model::from_bytes(weights)?;
     model.expect_config(&fixture.config)?;
     let config = fixture.config;
     let plan = scdp_engine::ArenaPlan::new(&config);
     let mut arena = AlignedBytes::zeroed(plan.arena_bytes);
-    let mut policy = Policy::with_backend(&model, arena.as_mut_slice(), backend)?;
+    let mut policy =
+        Policy::with_backend(&model, arena.as_mut_slice(), backend)?.with_workers(workers);
     if let Some(expected) = scdp_engine::kernels::select(backend) {
         anyhow::ensure!(
             policy.kernels_name() == expected.name(),
