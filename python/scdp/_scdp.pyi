@@ -102,13 +102,17 @@ class Policy:
     its own (`Model.arena_bytes`).
 
     `backend` is "auto" (the fastest this CPU runs) or a name from `scdp.backends()`; one
-    this CPU cannot run raises `EngineError`. The policy keeps its model alive. Calls
-    release the GIL while the engine runs; one policy serves one call at a time (a
+    this CPU cannot run raises `EngineError`. `threads` workers run each call: the calling
+    thread and `threads - 1` threads the policy starts once and keeps; the results are the
+    same bits for any number. The policy keeps its model alive. Calls release the GIL
+    while the engine runs; one policy serves one call at a time (a
     concurrent call from another thread raises `RuntimeError`), so give each thread its
     own policy.
     """
 
-    def __new__(cls, model: Model, backend: _BackendName | str = "auto") -> Self: ...
+    def __new__(
+        cls, model: Model, backend: _BackendName | str = "auto", threads: int = 1
+    ) -> Self: ...
     def set_camera(self, K: npt.ArrayLike, T: npt.ArrayLike) -> None:
         """Sets or replaces the camera calibration: `K` the 3x3 pinhole intrinsics
         `[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`, `T` the 4x4 rigid camera <- robot-base
@@ -183,6 +187,9 @@ class Policy:
     @property
     def backend(self) -> str:
         """The kernels in use: "scalar", "avx2", "avx512" or "amx" ("auto" resolved)."""
+    @property
+    def threads(self) -> int:
+        """Workers an inference runs on (the calling thread and `threads - 1` more)."""
     @property
     def timings(self) -> Timings:
         """Milliseconds of the engine's work in the last successful calls:

@@ -323,7 +323,7 @@ class TorchRuntime:
 class EngineRuntime:
     """The engine through this package's binding, on a weights file of `convert`."""
 
-    def __init__(self, model_path: Path, name: str, backend: str = "auto"):
+    def __init__(self, model_path: Path, name: str, backend: str = "auto", threads: int = 1):
         from . import Model, Policy
 
         if not model_path.exists():
@@ -332,7 +332,7 @@ class EngineRuntime:
             )
         self.name = name
         self.model = Model(str(model_path))
-        self.policy = Policy(self.model, backend=backend)
+        self.policy = Policy(self.model, backend=backend, threads=threads)
 
     def reset(self, camera_k, camera_t):
         self.policy.reset()
@@ -351,9 +351,9 @@ def make_runtime(runtime: str, model_dir: Path, threads: int, backend: str = "au
     if runtime == "torch":
         return TorchRuntime(model_dir, threads)
     if runtime == "engine-f32":
-        return EngineRuntime(model_dir / "f32.scdp", runtime, backend)
+        return EngineRuntime(model_dir / "f32.scdp", runtime, backend, threads)
     if runtime == "engine-int8":
-        return EngineRuntime(model_dir / "int8.scdp", runtime, backend)
+        return EngineRuntime(model_dir / "int8.scdp", runtime, backend, threads)
     raise SystemExit(f"unknown runtime {runtime!r}")
 
 
@@ -787,7 +787,8 @@ def main(argv=None) -> None:
     p.add_argument("--runtime", choices=("torch", "engine-f32", "engine-int8"), required=True)
     p.add_argument("--episodes", type=int, default=100)
     p.add_argument("--first-seed", type=int, default=DEFAULT_EVAL_SEED)
-    p.add_argument("--threads", type=int, default=2, help="PyTorch's threads (torch runtime)")
+    p.add_argument("--threads", type=int, default=2,
+                   help="PyTorch's threads (torch runtime), the engine's workers (engine runtimes: the same bits for any number)")
     p.add_argument("--backend", default="auto", help="engine kernels (engine runtimes)")
     p.add_argument("--gif", type=Path, help="write the first episode, anchors drawn, as an animated image")
     p.add_argument("--agreement", action="store_true",

@@ -24,6 +24,7 @@ use scdp_engine::{
     ArenaPlan, BackboneNorm, Backend, Camera, Model, ModelConfig, Noise, Policy, Prefix,
     PrefixMode, format::Quant,
 };
+use scdp_threads::ThreadPool;
 
 create_exception!(
     scdp,
@@ -320,16 +321,20 @@ impl PyModel {
 /// own (`Model.arena_bytes`).
 ///
 /// `backend` is "auto" (the fastest this CPU runs) or a name from `scdp.backends()`;
-/// one this CPU cannot run raises `EngineError`. The policy keeps its model alive. Calls
+/// one this CPU cannot run raises `EngineError`. `threads` workers run each call: the
+/// calling thread and `threads - 1` threads the policy starts once and keeps; the results
+/// are the same bits for any number. The policy keeps its model alive. Calls
 /// release the GIL while the engine runs; one policy serves one call at a time (a
 /// concurrent call from another thread raises `RuntimeError`), so give each thread its
 /// own policy.
 #[pyclass(module = "scdp", name = "Policy")]
 struct PyPolicy {
-    // Borrows `_arena` and `_model`: declared first so it is dropped first.
+    // Borrows `_arena`, `_model` and `_workers`: declared first so it is dropped first.
     policy: Policy<'static, 'static>,
     _arena: MmapMut,
     _model: Arc<Loaded>,
+    /// The worker threads beyond the calling one, when `threads > 1`.
+    _workers: Option<Box<ThreadPool>>,
     /// Seed of the next `infer()` given neither seed nor noise.
     next_seed: u64,
     push_observation_ms: Option<f64>,
@@ -350,8 +355,11 @@ fn milliseconds(start: Instant) -> f64 {
 #[pymethods]
 impl PyPolicy {
     #[new]
-    #[pyo3(signature = (model, backend = "auto"))]
-    fn new(model: &Bound<'_, PyModel>, backend: &str) -> PyResult<Self> {
+    #[pyo3(signature = (model, backend = "auto", threads = 1))]
+    fn new(model: &Bound<'_, PyModel>, backend: &str, threads: usize) -> PyResult<Self> {
+        if threads == 0 {
+            return Err(PyValueError::new_err("threads must be at least 1"));
+        }
         let Some(backend) = Backend::from_name(backend) else {
             let names: Vec<&str> = Backend::ALL.iter().map(|backend| backend.name()).collect();
             return Err(PyValueError::new_err(format!(
@@ -373,11 +381,26 @@ impl PyPolicy {
         // those bytes while it exists. Moving the handle does not move the pages.
         let arena_view: &'static mut [u8] =
             unsafe { std::slice::from_raw_parts_mut(arena.as_mut_ptr(), arena_bytes) };
-        let policy = Policy::with_backend(model, arena_view, backend).map_err(engine_error)?;
+        let mut policy = Policy::with_backend(model, arena_view, backend).map_err(engine_error)?;
+        let workers = if threads > 1 {
+            let pool = ThreadPool::new(threads)
+                .map_err(|error| PyRuntimeError::new_err(format!("worker threads: {error}")))?;
+            Some(Box::new(pool))
+        } else {
+            None
+        };
+        if let Some(pool) = &workers {
+            // SAFETY: the reference is stored only in `policy`; the pool is boxed (its
+            // address does not move with this struct) and dropped after `policy` (field
+            // order), so it outlives every use of the widened reference.
+            let pool: &'static ThreadPool = unsafe { &*(&**pool as *const ThreadPool) };
+            policy = policy.with_workers(pool);
+        }
         Ok(PyPolicy {
             policy,
             _arena: arena,
             _model: loaded,
+            _workers: workers,
             next_seed: 0,
             push_observation_ms: None,
             infer_ms: None,
@@ -594,6 +617,12 @@ impl PyPolicy {
         self.policy.kernels_name()
     }
 
+    /// Workers an inference runs on (the calling thread and `threads - 1` more).
+    #[getter]
+    fn threads(&self) -> usize {
+        self.policy.workers()
+    }
+
     /// Milliseconds of the engine's work in the last successful calls:
     /// "push_observation_ms" (encoding the frame) and "infer_ms" (the denoising loop),
     /// None before the first. Input conversion is not included.
@@ -612,7 +641,11 @@ impl PyPolicy {
     }
 
     fn __repr__(&self) -> String {
-        format!("scdp.Policy(backend={:?})", self.policy.kernels_name())
+        format!(
+            "scdp.Policy(backend={:?}, threads={})",
+            self.policy.kernels_name(),
+            self.policy.workers()
+        )
     }
 }
 

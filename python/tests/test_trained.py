@@ -106,6 +106,26 @@ def test_engine_reproduces_torch_on_recorded_observations(folder, quant, f32_wei
             assert error <= bound, (file.name, backend, error, bound)
 
 
+def test_threads_give_the_same_bits():
+    """A policy on 2 or 3 threads gives exactly one thread's actions (the engine cuts each
+    kernel call so that no sum changes order); 0 threads is refused."""
+    folder = TRAINED[0]
+    model = scdp.Model(str(folder / "int8.scdp"))
+    run = load_file(str(sorted((folder / "observations").glob("*.safetensors"))[0]))
+    results = {}
+    for threads in (1, 2, 3):
+        policy = scdp.Policy(model, threads=threads)
+        assert policy.threads == threads
+        policy.set_camera(run["camera_k"], run["camera_t"])
+        for image, state in zip(run["images"], run["state"]):
+            policy.push_observation(image, state)
+        results[threads] = policy.infer(noise=run["noise"], full=True)["action_pred"]
+    for threads in (2, 3):
+        assert np.array_equal(results[threads].view(np.uint32), results[1].view(np.uint32))
+    with pytest.raises(ValueError, match="threads"):
+        scdp.Policy(model, threads=0)
+
+
 @pytest.mark.parametrize("folder", TRAINED, ids=lambda f: f.name)
 def test_engine_succeeds_as_often_as_torch(folder):
     """The shipped evaluation: engine f32 and int8 on the torch rollouts' seeds, the 95%

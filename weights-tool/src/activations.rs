@@ -127,15 +127,42 @@ pub fn set_all_narrow(
 pub const NOISE_DRAWS: usize = 8;
 
 /// The predicted actions of a weights file on every scene, for [`NOISE_DRAWS`] noise seeds
-/// each (the same seeds for every file).
-fn actions(file: &[u8], scenes: &[RunInputs]) -> Result<Vec<Vec<f32>>> {
-    let mut runner = Runner::new(file)?;
-    let mut all = Vec::with_capacity(scenes.len() * NOISE_DRAWS);
-    for (index, scene) in scenes.iter().enumerate() {
-        let seeds: Vec<u64> = (0..NOISE_DRAWS)
-            .map(|draw| (index * NOISE_DRAWS + draw) as u64)
+/// each (the same seeds for every file), the scenes shared out over `threads` threads in
+/// runs (each thread its own policy), the results in scene order: the same values for any
+/// number of threads.
+fn actions(file: &[u8], scenes: &[RunInputs], threads: usize) -> Result<Vec<Vec<f32>>> {
+    let threads = threads.clamp(1, scenes.len().max(1));
+    let run = |first: usize, scenes: &[RunInputs]| -> Result<Vec<Vec<f32>>> {
+        let mut runner = Runner::new(file)?;
+        let mut all = Vec::with_capacity(scenes.len() * NOISE_DRAWS);
+        for (offset, scene) in scenes.iter().enumerate() {
+            let index = first + offset;
+            let seeds: Vec<u64> = (0..NOISE_DRAWS)
+                .map(|draw| (index * NOISE_DRAWS + draw) as u64)
+                .collect();
+            all.extend(runner.action_preds(scene, &seeds)?);
+        }
+        Ok(all)
+    };
+    if threads == 1 {
+        return run(0, scenes);
+    }
+    let share = |thread: usize| scenes.len() * thread / threads;
+    let parts: Vec<Result<Vec<Vec<f32>>>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = (0..threads)
+            .map(|thread| {
+                let (first, end) = (share(thread), share(thread + 1));
+                scope.spawn(move || run(first, &scenes[first..end]))
+            })
             .collect();
-        all.extend(runner.action_preds(scene, &seeds)?);
+        handles
+            .into_iter()
+            .map(|handle| handle.join().expect("a measuring thread panicked"))
+            .collect()
+    });
+    let mut all = Vec::with_capacity(scenes.len() * NOISE_DRAWS);
+    for part in parts {
+        all.extend(part?);
     }
     Ok(all)
 }
@@ -173,6 +200,7 @@ pub(crate) struct ActionMeasure<'s, P> {
     scenes: &'s [RunInputs],
     reference: Vec<Vec<f32>>,
     scale: Vec<f32>,
+    threads: usize,
     done: usize,
     total: usize,
     progress: P,
@@ -180,13 +208,12 @@ pub(crate) struct ActionMeasure<'s, P> {
 
 impl<'s, P: FnMut(usize, usize)> ActionMeasure<'s, P> {
     /// Runs the f32 model (`f32_file`) on `scenes`; `stored` gives the action scale, `total`
-    /// the number of files that will be measured.
+    /// the number of files that will be measured; every file runs on `threads` threads.
     pub(crate) fn new(
         config: &'s ModelConfig,
         stored: &BTreeMap<String, Stored>,
-        f32_file: &[u8],
-        scenes: &'s [RunInputs],
-        total: usize,
+        (f32_file, scenes): (&[u8], &'s [RunInputs]),
+        (total, threads): (usize, usize),
         progress: P,
     ) -> Result<Self> {
         ensure!(!scenes.is_empty(), "no calibration scenes to measure on");
@@ -194,12 +221,13 @@ impl<'s, P: FnMut(usize, usize)> ActionMeasure<'s, P> {
             Some(Stored::F32(values)) => values.clone(),
             _ => anyhow::bail!("internal: no f32 `normalizer.action.scale`"),
         };
-        let reference = actions(f32_file, scenes).context("the f32 model")?;
+        let reference = actions(f32_file, scenes, threads).context("the f32 model")?;
         Ok(ActionMeasure {
             config,
             scenes,
             reference,
             scale,
+            threads,
             done: 0,
             total,
             progress,
@@ -209,7 +237,7 @@ impl<'s, P: FnMut(usize, usize)> ActionMeasure<'s, P> {
     /// The error of the file `stored` makes.
     pub(crate) fn error(&mut self, stored: &BTreeMap<String, Stored>) -> Result<ActionError> {
         let file = write_weights_file(self.config, stored)?;
-        let found = actions(&file, self.scenes)?;
+        let found = actions(&file, self.scenes, self.threads)?;
         let error = action_error(&found, &self.reference, &self.scale);
         self.done += 1;
         (self.progress)(self.done, self.total);
@@ -222,18 +250,26 @@ impl<'s, P: FnMut(usize, usize)> ActionMeasure<'s, P> {
 /// are made narrow in the order of that error, each kept narrow only if the file with it
 /// and the ones kept before stays within `budget`; none if the file with 15-bit codes
 /// everywhere is already over its cap. `f32_file` is the same model in f32, the
-/// reference. `progress` is called after each measured file with (done, total).
+/// reference. `progress` is called after each measured file with (done, total). Each file
+/// runs on `threads` threads (the same values for any number).
 pub fn choose(
     config: &ModelConfig,
     stored: &mut BTreeMap<String, Stored>,
     f32_file: &[u8],
     scenes: &[RunInputs],
     budget: Budget,
+    threads: usize,
     progress: impl FnMut(usize, usize),
 ) -> Result<WidthReport> {
     let candidates = narrow_candidates(config, stored)?;
     let total = 2 * candidates.len() + 1;
-    let mut measure = ActionMeasure::new(config, stored, f32_file, scenes, total, progress)?;
+    let mut measure = ActionMeasure::new(
+        config,
+        stored,
+        (f32_file, scenes),
+        (total, threads),
+        progress,
+    )?;
     set_codes(stored, &candidates, ActivationCodes::Wide);
     let wide = measure.error(stored)?;
     let mut layers = Vec::with_capacity(candidates.len());

@@ -71,6 +71,16 @@ struct RunArgs {
     /// avx512, amx, neon, dot, i8mm); `inspect` lists this CPU's.
     #[arg(long, value_name = "NAME", default_value = "auto")]
     kernels: String,
+    /// Workers an inference runs on: the calling thread and N - 1 more. A list (`1,2`)
+    /// runs the inference on each, checks they give the same bits, and benchmarks each in
+    /// turn with `--bench`.
+    #[arg(
+        long,
+        value_name = "N[,N...]",
+        value_delimiter = ',',
+        default_value = "1"
+    )]
+    threads: Vec<usize>,
 }
 
 #[derive(clap::Args)]
@@ -134,9 +144,18 @@ struct ConvertArgs {
     /// every one of them.
     #[arg(long, value_enum, default_value_t = RefineArg::Measured)]
     refine: RefineArg,
+    /// Threads the measurements run on (the calibration scenes shared out among them); the
+    /// same choices and the same file for any number. Default: every core.
+    #[arg(long, value_name = "N", default_value_t = every_core())]
+    threads: usize,
     /// Output weights file.
     #[arg(short, long, value_name = "MODEL.scdp")]
     output: PathBuf,
+}
+
+/// The cores this process may run on.
+fn every_core() -> usize {
+    std::thread::available_parallelism().map_or(1, usize::from)
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -303,9 +322,20 @@ fn int8_weights_file(
             refine::set_refined(&mut stored, &names, true);
             None
         }
-        RefineArg::Measured => Some(with_progress("measuring weight refinement", |progress| {
-            refine::choose(config, &mut stored, &f32_file, scenes, budget, progress)
-        })?),
+        RefineArg::Measured => Some(with_progress(
+            &on_threads("measuring weight refinement", args.threads),
+            |progress| {
+                refine::choose(
+                    config,
+                    &mut stored,
+                    &f32_file,
+                    scenes,
+                    budget,
+                    args.threads,
+                    progress,
+                )
+            },
+        )?),
     };
     let report = match args.activations {
         ActivationsArg::Wide => None,
@@ -314,17 +344,32 @@ fn int8_weights_file(
             activations::set_all_narrow(config, &mut stored)?;
             None
         }
-        ActivationsArg::Measured => {
-            Some(with_progress("measuring activation widths", |progress| {
-                activations::choose(config, &mut stored, &f32_file, scenes, budget, progress)
-            })?)
-        }
+        ActivationsArg::Measured => Some(with_progress(
+            &on_threads("measuring activation widths", args.threads),
+            |progress| {
+                activations::choose(
+                    config,
+                    &mut stored,
+                    &f32_file,
+                    scenes,
+                    budget,
+                    args.threads,
+                    progress,
+                )
+            },
+        )?),
     };
     Ok(Int8File {
         bytes: write_weights_file(config, &stored)?,
         widths: report,
         refinement,
     })
+}
+
+/// A progress label saying how many threads do the work.
+fn on_threads(label: &str, threads: usize) -> String {
+    let plural = if threads == 1 { "" } else { "s" };
+    format!("{label} on {threads} thread{plural}")
 }
 
 /// An int8 weights file and what was measured to make it.
@@ -552,9 +597,22 @@ fn run(args: &RunArgs) -> anyhow::Result<()> {
             .map_err(|error| anyhow::anyhow!("{}: {error}", args.model.display()))?
             .config();
     let inputs = RunInputs::load(&args.inputs, &config)?;
+    let counts = &args.threads;
+    runner.set_threads(counts[0])?;
     let (outputs, times) = runner.run(&inputs, args.seed)?;
     let action_dim = config.action_dim as usize;
-    println!("kernels: {}", runner.kernels_name());
+    println!("kernels: {}, threads: {}", runner.kernels_name(), counts[0]);
+    for &threads in &counts[1..] {
+        runner.set_threads(threads)?;
+        let (other, _) = runner.run(&inputs, args.seed)?;
+        let same = other
+            .action_pred
+            .iter()
+            .map(|v| v.to_bits())
+            .eq(outputs.action_pred.iter().map(|v| v.to_bits()));
+        anyhow::ensure!(same, "{threads} threads give other bits than {}", counts[0]);
+        println!("threads: {threads}, the same bits");
+    }
     println!(
         "action ({} steps x {action_dim}), encode {:.1} ms for {} frames, denoise {:.1} ms:",
         config.n_action_steps,
@@ -579,16 +637,32 @@ fn run(args: &RunArgs) -> anyhow::Result<()> {
         );
     }
     if let Some(iterations) = args.bench {
-        let table = bench(&mut runner, &inputs, iterations)?;
-        println!("{iterations} runs after a warm-up, one thread:");
-        println!("  {:<36} {:>10} {:>10}", "stage", "median ms", "p99 ms");
-        for (stage, (median, p99)) in table {
+        // Each count in turn, a tenth of the runs at a time, so slow drifts of the machine
+        // fall on every count alike.
+        let rounds = iterations.clamp(1, 10);
+        let mut samples: Vec<Vec<weights_tool::run::StageSamples>> = vec![Vec::new(); counts.len()];
+        for round in 0..rounds {
+            let runs = iterations * (round + 1) / rounds - iterations * round / rounds;
+            for (index, &threads) in counts.iter().enumerate() {
+                runner.set_threads(threads)?;
+                samples[index].push(bench(&mut runner, &inputs, runs.max(1))?);
+            }
+        }
+        for (index, &threads) in counts.iter().enumerate() {
+            let table = weights_tool::run::StageSamples::table(&samples[index]);
             println!(
-                "  {:<36} {:>10.2} {:>10.2}",
-                &stage[2..],
-                milliseconds(median),
-                milliseconds(p99)
+                "{iterations} runs after a warm-up, {threads} thread{}:",
+                if threads == 1 { "" } else { "s" }
             );
+            println!("  {:<36} {:>10} {:>10}", "stage", "median ms", "p99 ms");
+            for (stage, (median, p99)) in table {
+                println!(
+                    "  {:<36} {:>10.2} {:>10.2}",
+                    &stage[2..],
+                    milliseconds(median),
+                    milliseconds(p99)
+                );
+            }
         }
     }
     Ok(())

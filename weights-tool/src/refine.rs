@@ -81,18 +81,26 @@ pub struct RefineReport {
 /// refined. Single layers gain little alone (the trunk's error comes from all of them), so
 /// the choice is made on whole files, as [`crate::activations::choose`] makes its own.
 /// `f32_file` is the same model in f32, the reference. `progress` is called after each
-/// measured file with (done, total).
+/// measured file with (done, total). Each file runs on `threads` threads (the same values
+/// for any number).
 pub fn choose(
     config: &ModelConfig,
     stored: &mut BTreeMap<String, Stored>,
     f32_file: &[u8],
     scenes: &[RunInputs],
     budget: Budget,
+    threads: usize,
     progress: impl FnMut(usize, usize),
 ) -> Result<RefineReport> {
     let names = candidates(stored);
     let total = 2 * names.len() + 2;
-    let mut measure = ActionMeasure::new(config, stored, f32_file, scenes, total, progress)?;
+    let mut measure = ActionMeasure::new(
+        config,
+        stored,
+        (f32_file, scenes),
+        (total, threads),
+        progress,
+    )?;
     set_refined(stored, &names, false);
     let none = measure.error(stored)?;
     let mut layers = Vec::with_capacity(names.len());

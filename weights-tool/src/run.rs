@@ -11,6 +11,7 @@ use scdp_engine::kernels::{self, Kernels};
 use scdp_engine::{
     ArenaPlan, Backend, Camera, Model, ModelConfig, Noise, Policy, Prefix, PrefixMode,
 };
+use scdp_threads::{ThreadPool, Workers};
 
 use crate::writer::AlignedBytes;
 
@@ -193,6 +194,8 @@ pub struct Runner {
     weights: AlignedBytes,
     arena: AlignedBytes,
     kernels: &'static dyn Kernels,
+    /// Workers beyond the calling thread, when there are any.
+    workers: Option<ThreadPool>,
 }
 
 impl Runner {
@@ -213,7 +216,25 @@ impl Runner {
             weights,
             arena,
             kernels,
+            workers: None,
         })
+    }
+
+    /// Runs each inference on `threads` workers (the calling thread and `threads - 1` more,
+    /// spawned now).
+    pub fn set_threads(&mut self, threads: usize) -> Result<()> {
+        ensure!(threads > 0, "--threads needs at least one thread");
+        self.workers = if threads > 1 {
+            Some(ThreadPool::new(threads).context("starting the worker threads")?)
+        } else {
+            None
+        };
+        Ok(())
+    }
+
+    /// How many workers run an inference.
+    pub fn threads(&self) -> usize {
+        self.workers.as_ref().map_or(1, Workers::count)
     }
 
     /// The name of the kernels that run.
@@ -232,6 +253,9 @@ impl Runner {
             .map_err(|error| anyhow::anyhow!("{error}"))?;
         let mut policy = Policy::with_kernels(&model, self.arena.as_mut_slice(), self.kernels)
             .map_err(|error| anyhow::anyhow!("{error}"))?;
+        if let Some(workers) = &self.workers {
+            policy = policy.with_workers(workers);
+        }
         let camera = Camera::new(&inputs.intrinsics, &inputs.extrinsics)
             .map_err(|error| anyhow::anyhow!("camera: {error}"))?;
         policy.set_camera(camera);
@@ -369,21 +393,40 @@ pub fn percentiles(samples: &mut [Duration]) -> (Duration, Duration) {
     (at(0.5), at(0.99))
 }
 
+/// The durations of each stage over a set of runs ([`bench`]).
+#[derive(Clone, Debug, Default)]
+pub struct StageSamples {
+    encode: Vec<Duration>,
+    denoise: Vec<Duration>,
+    total: Vec<Duration>,
+    streaming: Vec<Duration>,
+}
+
+impl StageSamples {
+    /// Median and 99th percentile of each stage over every run of `sets`.
+    pub fn table(sets: &[StageSamples]) -> BTreeMap<&'static str, (Duration, Duration)> {
+        let all = |stage: fn(&StageSamples) -> &Vec<Duration>| {
+            let mut values: Vec<Duration> =
+                sets.iter().flat_map(|set| stage(set).clone()).collect();
+            percentiles(&mut values)
+        };
+        BTreeMap::from([
+            ("1 encode one frame", all(|set| &set.encode)),
+            ("2 denoise (all steps)", all(|set| &set.denoise)),
+            ("3 end to end, all frames", all(|set| &set.total)),
+            ("4 end to end, newest frame only", all(|set| &set.streaming)),
+        ])
+    }
+}
+
 /// Per-stage latency over `iterations` runs after one warm-up run.
-pub fn bench(
-    runner: &mut Runner,
-    inputs: &RunInputs,
-    iterations: usize,
-) -> Result<BTreeMap<&'static str, (Duration, Duration)>> {
+pub fn bench(runner: &mut Runner, inputs: &RunInputs, iterations: usize) -> Result<StageSamples> {
     ensure!(iterations > 0, "--bench needs at least one iteration");
     let noise = match &inputs.noise {
         Some(values) => Noise::Given(values),
         None => Noise::Seed(0),
     };
-    let mut encode = Vec::new();
-    let mut denoise = Vec::new();
-    let mut total = Vec::new();
-    let mut streaming = Vec::new();
+    let mut samples = StageSamples::default();
     // One model and one policy for every run, as a controller keeps them; each run starts
     // from an empty history. The first warms up.
     runner.with_policy(inputs, |policy| {
@@ -397,23 +440,15 @@ pub fn bench(
                 .map_err(|error| anyhow::anyhow!("inference: {error}"))?;
             times.denoise = start.elapsed();
             if iteration > 0 {
-                encode.push(times.encode_newest);
-                denoise.push(times.denoise);
-                total.push(times.encode_frames + times.denoise);
-                streaming.push(times.encode_newest + times.denoise);
+                samples.encode.push(times.encode_newest);
+                samples.denoise.push(times.denoise);
+                samples.total.push(times.encode_frames + times.denoise);
+                samples.streaming.push(times.encode_newest + times.denoise);
             }
         }
         Ok(())
     })?;
-    Ok(BTreeMap::from([
-        ("1 encode one frame", percentiles(&mut encode)),
-        ("2 denoise (all steps)", percentiles(&mut denoise)),
-        ("3 end to end, all frames", percentiles(&mut total)),
-        (
-            "4 end to end, newest frame only",
-            percentiles(&mut streaming),
-        ),
-    ]))
+    Ok(samples)
 }
 
 /// Colour of denoising step `step` of `steps`: blue (noisiest) through green to red (final).

@@ -62,6 +62,10 @@ struct Cli {
     /// otherwise pulled towards.
     #[arg(long)]
     no_planned: bool,
+    /// Workers an inference runs on: the control loop's thread and N - 1 threads started
+    /// once (the same actions for any number).
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    threads: usize,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -194,9 +198,14 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
 
     let plan = ArenaPlan::new(&config);
     let mut arena = AlignedBytes::zeroed(plan.arena_bytes);
-    let mut policy = Policy::new(&model, arena.as_mut_slice()).context("policy")?;
+    anyhow::ensure!(cli.threads > 0, "--threads needs at least one thread");
+    let pool = scdp_threads::ThreadPool::new(cli.threads).context("worker threads")?;
+    let mut policy = Policy::new(&model, arena.as_mut_slice())
+        .context("policy")?
+        .with_workers(&pool);
     policy.set_camera(calibration.camera().context("camera")?);
     let kernels = policy.kernels_name();
+    let threads = policy.workers();
     let robot = SimRobot::new(&config, &timing, calibration).context("camera")?;
     let dims = Dims {
         frame_bytes: (config.image_height * config.image_width * 3) as usize,
@@ -216,7 +225,7 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
 
     println!(
         "model: {}x{} images, To {}, horizon {}, {} actions per chunk, action_dim {}; weights {} \
-         ({:.1} MB); arena {:.1} MB; kernels {kernels}",
+         ({:.1} MB); arena {:.1} MB; kernels {kernels} on {threads} thread(s)",
         config.image_width,
         config.image_height,
         config.n_obs_steps,
