@@ -5,6 +5,8 @@ Rust engine, on the same seeded synthetic weights and the same inputs (the golde
     python benches/peer/peer.py                      # PyTorch and ORT, metaworld and panda
     python benches/peer/peer.py --engine             # also `weights-tool run --bench`, and ratios
     python benches/peer/peer.py --flops              # PyTorch's FLOP counter per stage (see macs.rs)
+    python benches/peer/peer.py --engine --int8 --ort-int8 --threads 1,2 --no-torch
+                                                     # every runtime on 1 and 2 threads
 
 Models are the PyTorch reference of `tests/reference/` (imported, not copied), built as
 `generate.py` builds them: synthetic seed-1 weights for the config, float32.
@@ -15,13 +17,16 @@ Models are the PyTorch reference of `tests/reference/` (imported, not copied), b
 - ONNX Runtime: the trunk + projections exported as one graph (both frames as a batch) and one
   U-Net evaluation as another; anchors, bilinear pooling and DDIM in NumPy around ORT.
   Its result is checked against the PyTorch reference before timing.
+- ONNX Runtime int8 (`--ort-int8`): both graphs quantized statically (QDQ, int8 weights per
+  output channel, uint8 activations calibrated on the fixture's frames and on the U-Net inputs
+  of its own f32 denoising loop), its error against PyTorch printed beside its times.
 - Engine (`--engine`): `weights-tool synth` + `convert` (f32, and with `--int8` the fast int8 file: 8-bit
   activations in every residual-block layer, rounded to nearest) + `run
   --bench N` on the same fixture; its action_pred is checked against PyTorch too.
 
-Everything runs on one thread: torch.set_num_threads(1), ORT intra_op_num_threads = 1 and
-inter_op_num_threads = 1; the engine is single-threaded. Times are medians of `--runs` runs after
-warm-up.
+`--threads N[,N...]` (default 1) runs everything on each count in turn: torch.set_num_threads(N),
+ORT intra_op_num_threads = N (inter_op 1, sequential execution), the engine `--threads N`. Times
+are medians of `--runs` runs after warm-up.
 """
 
 from __future__ import annotations
@@ -175,11 +180,11 @@ def export_onnx(policy: SCDPPolicy, cfg: dict, inp: RunInputs, folder: str) -> t
     return enc_path, unet_path
 
 
-def ort_session(path: str):
+def ort_session(path: str, threads: int = 1):
     import onnxruntime as ort
 
     options = ort.SessionOptions()
-    options.intra_op_num_threads = 1
+    options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
@@ -189,10 +194,11 @@ def ort_session(path: str):
 class OrtPolicy:
     """The policy around two ORT sessions; anchors, pooling and DDIM in NumPy (float32)."""
 
-    def __init__(self, cfg: dict, policy: SCDPPolicy, enc_path: str, unet_path: str):
+    def __init__(self, cfg: dict, policy: SCDPPolicy, enc_path: str, unet_path: str, threads: int = 1):
         self.cfg = cfg
-        self.encoder = ort_session(enc_path)
-        self.unet = ort_session(unet_path)
+        self.encoder = ort_session(enc_path, threads)
+        self.unet = ort_session(unet_path, threads)
+        self.unet_inputs = None  # set to a list to record the U-Net's inputs
         nd = policy.normalizer.params_dict
         self.action_scale = nd["action"]["scale"].detach().numpy()
         self.action_offset = nd["action"]["offset"].detach().numpy()
@@ -252,8 +258,10 @@ class OrtPolicy:
             u, v, valid = self.anchors_uv(A, state, K, T)
             ctx = self.context(feats, u, v, valid)
             g = np.concatenate([np.concatenate([ctx[j], nstate[j]]) for j in range(To)])[None].astype(np.float32)
-            eps = self.unet.run(None, {"sample": A[None], "t": np.array([t], dtype=np.float32),
-                                       "global_cond": g})[0][0]
+            feed = {"sample": A[None], "t": np.array([t], dtype=np.float32), "global_cond": g}
+            if self.unet_inputs is not None:
+                self.unet_inputs.append({key: value.copy() for key, value in feed.items()})
+            eps = self.unet.run(None, feed)[0][0]
             a_t = np.float32(self.ac[t])
             a_prev = np.float32(self.ac[t - self.ratio]) if t - self.ratio >= 0 else np.float32(1.0)
             x0 = (A - np.sqrt(1 - a_t) * eps) / np.sqrt(a_t)
@@ -266,6 +274,31 @@ class OrtPolicy:
         return self.denoise(self.encode(inp.images), inp)
 
 
+def quantize_int8(enc_path: str, unet_path: str, ort_f32: "OrtPolicy", inp: RunInputs, folder: str):
+    """Static QDQ quantization of both graphs (per-channel int8 weights, uint8 activations),
+    calibrated on the fixture's frames and on the U-Net inputs of the f32 loop."""
+    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+
+    class Reader(CalibrationDataReader):
+        def __init__(self, feeds):
+            self.feeds = iter(feeds)
+
+        def get_next(self):
+            return next(self.feeds, None)
+
+    ort_f32.unet_inputs = []
+    feats = ort_f32.encode(inp.images)
+    ort_f32.denoise(feats, inp)
+    unet_feeds, ort_f32.unet_inputs = ort_f32.unet_inputs, None
+    paths = []
+    for path, feeds in ((enc_path, [{"images": inp.images}]), (unet_path, unet_feeds)):
+        out = path.replace(".onnx", ".int8.onnx")
+        quantize_static(path, out, Reader(feeds), quant_format=QuantFormat.QDQ, per_channel=True,
+                        weight_type=QuantType.QInt8, activation_type=QuantType.QUInt8)
+        paths.append(out)
+    return paths
+
+
 # ------------------------------------------------------------------------------------ engine
 
 
@@ -274,7 +307,7 @@ def cargo_weights_tool() -> list[str]:
     return [os.path.join(ROOT, "target", "release", "weights-tool")]
 
 
-def engine_bench(tool: list[str], name: str, folder: str, runs: int, quant: str) -> dict:
+def engine_bench(tool: list[str], name: str, folder: str, runs: int, quant: str, threads: int = 1) -> dict:
     config = os.path.join(ROOT, "tests", "configs", f"{name}.toml")
     ckpt = os.path.join(folder, f"{name}.safetensors")
     model = os.path.join(folder, f"{name}.{quant}.scdp")
@@ -285,9 +318,11 @@ def engine_bench(tool: list[str], name: str, folder: str, runs: int, quant: str)
     # The fast int8 file: 8-bit activations in every residual-block layer. Its rounding does
     # not change its speed, so it is rounded to nearest (no calibration scenes needed).
     int8 = ["--rounding", "nearest", "--activations", "narrow"] if quant == "int8" else []
-    subprocess.run(tool + ["convert", ckpt, "--config", config, "--quant", quant, *int8, "-o", model], check=True,
-                   capture_output=True)
-    text = subprocess.run(tool + ["run", model, "--inputs", fixture_path(name), "-o", out, "--bench", str(runs)],
+    if not os.path.exists(model):
+        subprocess.run(tool + ["convert", ckpt, "--config", config, "--quant", quant, *int8, "-o", model],
+                       check=True, capture_output=True)
+    text = subprocess.run(tool + ["run", model, "--inputs", fixture_path(name), "-o", out, "--bench", str(runs),
+                                  "--threads", str(threads)],
                           check=True, capture_output=True, text=True).stdout
     stages = {}
     for line in text.splitlines():
@@ -309,9 +344,13 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=15, help="timed runs per measurement (median)")
     ap.add_argument("--engine", action="store_true", help="also time the Rust engine (weights-tool run --bench)")
     ap.add_argument("--int8", action="store_true", help="with --engine, also the int8 weights file")
+    ap.add_argument("--ort-int8", action="store_true", help="also ONNX Runtime on statically quantized graphs")
+    ap.add_argument("--no-torch", action="store_true", help="skip PyTorch eager")
+    ap.add_argument("--threads", default="1", help="thread counts, comma-separated (each runtime on each)")
     ap.add_argument("--weights-tool", help="weights-tool binary (default: cargo build --release)")
     ap.add_argument("--flops", action="store_true", help="print PyTorch's FLOP counts and exit")
     args = ap.parse_args()
+    counts = [int(count) for count in args.threads.split(",")]
 
     torch.set_num_threads(1)
     torch.set_num_interop_threads(1)
@@ -333,48 +372,56 @@ def main() -> None:
             images = torch.as_tensor(inp.images)
             G = cfg["n_obs_steps"] * (5 * cfg["feature_dim"] + cfg["state_dim"])
             sample, g = torch.as_tensor(inp.noise)[None], torch.zeros(1, G)
-
-            with torch.no_grad():
-                torch_full = median_ms(lambda: policy.predict(inp), args.runs)
-                torch_encode = median_ms(lambda: policy.features(images), args.runs)
-                torch_unet = median_ms(lambda: policy.model(sample, torch.tensor(90.0), g), args.runs)
-
             enc_path, unet_path = export_onnx(policy, cfg, inp, folder)
-            ort_policy = OrtPolicy(cfg, policy, enc_path, unet_path)
-            ort_pred = ort_policy.predict(inp)
-            ort_error = float(np.abs(ort_pred - reference).max())
-            assert ort_error < 1e-2, f"{name}: ORT disagrees with the PyTorch reference by {ort_error}"
-            feats = ort_policy.encode(inp.images)
-            ort_full = median_ms(lambda: ort_policy.predict(inp), args.runs)
-            ort_encode = median_ms(lambda: ort_policy.encode(inp.images), args.runs)
-            ort_unet = median_ms(lambda: ort_policy.unet.run(None, {
-                "sample": inp.noise[None].astype(np.float32), "t": np.array([90.0], dtype=np.float32),
-                "global_cond": np.zeros((1, G), dtype=np.float32)}), args.runs)
-            ort_denoise = median_ms(lambda: ort_policy.denoise(feats, inp), args.runs)
-
+            graphs = [("ONNX Runtime", enc_path, unet_path)]
+            if args.ort_int8:
+                graphs.append(("ORT int8", *quantize_int8(enc_path, unet_path, OrtPolicy(cfg, policy, enc_path,
+                                                                                          unet_path), inp, folder)))
             frames = cfg["n_obs_steps"]
             steps = cfg["num_inference_steps"]
-            rows.append((name, "PyTorch eager", torch_encode, torch_unet, None, torch_full, 0.0))
-            rows.append((name, "ONNX Runtime", ort_encode, ort_unet, ort_denoise, ort_full, ort_error))
-            engines = [("f32", "engine f32")] + ([("int8", "engine int8")] if args.int8 else [])
-            for quant, label in engines if args.engine else []:
-                e = engine_bench(tool, name, folder, args.runs, quant)
-                err = float(np.abs(e["action_pred"] - reference).max())
-                rows.append((name, label, frames * e["encode_frame"], None, e["denoise"], e["full"], err))
-                ratios = (e["full"] / ort_full, e["full"] / torch_full)
-                print(f"{name}: {label} / ORT = {ratios[0]:.2f}, {label} / PyTorch = {ratios[1]:.2f} "
-                      f"(end to end, {frames} frames + {steps} steps)", flush=True)
+            for threads in counts:
+                torch.set_num_threads(threads)
+                if not args.no_torch:
+                    with torch.no_grad():
+                        torch_full = median_ms(lambda: policy.predict(inp), args.runs)
+                        torch_encode = median_ms(lambda: policy.features(images), args.runs)
+                        torch_unet = median_ms(lambda: policy.model(sample, torch.tensor(90.0), g), args.runs)
+                    rows.append((name, threads, "PyTorch eager", torch_encode, torch_unet, None, torch_full, 0.0))
+                ort_fulls = {}
+                for label, encoder, unet in graphs:
+                    ort_policy = OrtPolicy(cfg, policy, encoder, unet, threads)
+                    ort_pred = ort_policy.predict(inp)
+                    ort_error = float(np.abs(ort_pred - reference).max())
+                    if label == "ONNX Runtime":
+                        assert ort_error < 1e-2, f"{name}: ORT disagrees with the PyTorch reference by {ort_error}"
+                    feats = ort_policy.encode(inp.images)
+                    ort_full = median_ms(lambda: ort_policy.predict(inp), args.runs)
+                    ort_encode = median_ms(lambda: ort_policy.encode(inp.images), args.runs)
+                    ort_unet = median_ms(lambda: ort_policy.unet.run(None, {
+                        "sample": inp.noise[None].astype(np.float32), "t": np.array([90.0], dtype=np.float32),
+                        "global_cond": np.zeros((1, G), dtype=np.float32)}), args.runs)
+                    ort_denoise = median_ms(lambda: ort_policy.denoise(feats, inp), args.runs)
+                    rows.append((name, threads, label, ort_encode, ort_unet, ort_denoise, ort_full, ort_error))
+                    ort_fulls[label] = ort_full
+                engines = [("f32", "engine f32")] + ([("int8", "engine int8")] if args.int8 else [])
+                for quant, label in engines if args.engine else []:
+                    e = engine_bench(tool, name, folder, args.runs, quant, threads)
+                    err = float(np.abs(e["action_pred"] - reference).max())
+                    rows.append((name, threads, label, frames * e["encode_frame"], None, e["denoise"], e["full"], err))
+                    for peer, full in ort_fulls.items():
+                        print(f"{name}, {threads} thread(s): {label} / {peer} = {e['full'] / full:.3f} "
+                              f"(end to end, {frames} frames + {steps} steps)", flush=True)
             print(f"{name}: done", file=sys.stderr, flush=True)
 
     if args.flops:
         return
-    print(f"\nmedian of {args.runs} runs, one thread; ms. encode = {frames} frames; "
+    print(f"\nmedian of {args.runs} runs; ms. encode = {frames} frames; "
           f"U-Net = one evaluation; denoise = {steps} steps incl. anchors, pooling, DDIM")
-    print(f"{'config':<10} {'runtime':<14} {'encode':>9} {'U-Net':>9} {'denoise':>9} {'full':>9}"
+    print(f"{'config':<10} {'threads':>7} {'runtime':<14} {'encode':>9} {'U-Net':>9} {'denoise':>9} {'full':>9}"
           f" {'max|d action_pred| vs PyTorch':>30}")
     fmt = lambda x: f"{x:>9.2f}" if x is not None else f"{'-':>9}"  # noqa: E731
-    for name, label, enc, unet, den, full, err in rows:
-        print(f"{name:<10} {label:<14} {fmt(enc)} {fmt(unet)} {fmt(den)} {fmt(full)} {err:>30.2e}")
+    for name, threads, label, enc, unet, den, full, err in rows:
+        print(f"{name:<10} {threads:>7} {label:<14} {fmt(enc)} {fmt(unet)} {fmt(den)} {fmt(full)} {err:>30.2e}")
 
 
 if __name__ == "__main__":
