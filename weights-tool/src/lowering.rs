@@ -807,11 +807,75 @@ pub fn store_keeping(
     lowered: Lowered,
     quant: Quant,
     rounding: Rounding<'_>,
-    keep_f32: impl Fn(&str) -> bool,
+    keep_f32: impl Fn(&str) -> bool + Sync,
+) -> Result<BTreeMap<String, Stored>> {
+    store_keeping_on(config, lowered, (quant, rounding), keep_f32, 1)
+}
+
+/// [`store`] with the tensors shared out over `threads` threads (GPTQ rounds each tensor
+/// on its own): the same stored values for any number.
+pub fn store_on(
+    config: &ModelConfig,
+    lowered: Lowered,
+    (quant, rounding): (Quant, Rounding<'_>),
+    threads: usize,
+) -> Result<BTreeMap<String, Stored>> {
+    let kept = int8_kept_f32(config);
+    let keep = |name: &str| kept.iter().any(|(kept, _)| *kept == name);
+    store_keeping_on(config, lowered, (quant, rounding), keep, threads)
+}
+
+fn store_keeping_on(
+    config: &ModelConfig,
+    lowered: Lowered,
+    (quant, rounding): (Quant, Rounding<'_>),
+    keep_f32: impl Fn(&str) -> bool + Sync,
+    threads: usize,
 ) -> Result<BTreeMap<String, Stored>> {
     let specs = crate::writer::tensor_specs(config)?;
+    let tensors: Vec<(String, Vec<f32>)> = lowered.into_iter().collect();
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let slots: Vec<std::sync::Mutex<Option<Result<Stored>>>> = tensors
+        .iter()
+        .map(|_| std::sync::Mutex::new(None))
+        .collect();
+    let work = || {
+        loop {
+            let index = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let Some((name, values)) = tensors.get(index) else {
+                return;
+            };
+            let result = store_tensor(&specs, name, values, (quant, rounding), &keep_f32);
+            *slots[index].lock().expect("a tensor's slot") = Some(result);
+        }
+    };
+    std::thread::scope(|scope| {
+        for _ in 1..threads.max(1) {
+            scope.spawn(work);
+        }
+        work();
+    });
     let mut stored = BTreeMap::new();
-    for (name, values) in lowered {
+    for ((name, _), slot) in tensors.iter().zip(slots) {
+        let tensor = slot
+            .into_inner()
+            .expect("a tensor's slot")
+            .expect("every tensor stored")?;
+        stored.insert(name.clone(), tensor);
+    }
+    Ok(stored)
+}
+
+/// How `name` (lowered to `values`) is stored.
+fn store_tensor(
+    specs: &[crate::writer::TensorSpec],
+    name: &str,
+    values: &[f32],
+    (quant, rounding): (Quant, Rounding<'_>),
+    keep_f32: &(impl Fn(&str) -> bool + Sync),
+) -> Result<Stored> {
+    let (name, values) = (name.to_owned(), values.to_vec());
+    {
         let spec = specs.iter().find(|spec| spec.name == name);
         let int8_channels =
             spec.and_then(|spec| spec.int8_scales.as_ref().map(|(_, channels)| *channels));
@@ -871,9 +935,8 @@ pub fn store_keeping(
             }
             _ => Stored::F32(values),
         };
-        stored.insert(name, tensor);
+        Ok(tensor)
     }
-    Ok(stored)
 }
 
 /// The weights file for `config` holding `state` (a state dict that passed

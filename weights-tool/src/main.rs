@@ -310,8 +310,8 @@ fn int8_weights_file(
     let rounding = moments
         .as_ref()
         .map_or(Rounding::Nearest, Rounding::Calibrated);
-    let spinner = spinner("rounding");
-    let mut stored = lowering::store(config, lowered, Quant::Int8, rounding)?;
+    let spinner = spinner(&on_threads("rounding", args.threads));
+    let mut stored = lowering::store_on(config, lowered, (Quant::Int8, rounding), args.threads)?;
     spinner.finish_and_clear();
     let budget = Budget::with_increase(args.action_budget);
     let refinement = match args.refine {
