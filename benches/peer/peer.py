@@ -32,6 +32,7 @@ are medians of `--runs` runs after warm-up.
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import re
 import statistics
@@ -403,6 +404,10 @@ def main() -> None:
                     ort_denoise = median_ms(lambda: ort_policy.denoise(feats, inp), args.runs)
                     rows.append((name, threads, label, ort_encode, ort_unet, ort_denoise, ort_full, ort_error))
                     ort_fulls[label] = ort_full
+                    # Its sessions' pool threads spin for a while after a run: gone before the
+                    # next runtime starts, so they do not share its cores.
+                    del ort_policy, feats
+                    gc.collect()
                 engines = [("f32", "engine f32")] + ([("int8", "engine int8")] if args.int8 else [])
                 for quant, label in engines if args.engine else []:
                     e = engine_bench(tool, name, folder, args.runs, quant, threads)
