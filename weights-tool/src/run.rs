@@ -11,7 +11,7 @@ use scdp_engine::kernels::{self, Kernels};
 use scdp_engine::{
     ArenaPlan, Backend, Camera, Model, ModelConfig, Noise, Policy, Prefix, PrefixMode,
 };
-use scdp_threads::{ThreadPool, Workers};
+use scdp_threads::ThreadPool;
 
 use crate::writer::AlignedBytes;
 
@@ -194,8 +194,11 @@ pub struct Runner {
     weights: AlignedBytes,
     arena: AlignedBytes,
     kernels: &'static dyn Kernels,
-    /// Workers beyond the calling thread, when there are any.
-    workers: Option<ThreadPool>,
+    /// Workers an inference runs on.
+    threads: usize,
+    /// A pool for each count of more than one thread asked for, kept (an idle pool's
+    /// threads park), so switching counts starts no thread.
+    pools: BTreeMap<usize, ThreadPool>,
 }
 
 impl Runner {
@@ -216,25 +219,26 @@ impl Runner {
             weights,
             arena,
             kernels,
-            workers: None,
+            threads: 1,
+            pools: BTreeMap::new(),
         })
     }
 
     /// Runs each inference on `threads` workers (the calling thread and `threads - 1` more,
-    /// spawned now).
+    /// started the first time this count is asked for).
     pub fn set_threads(&mut self, threads: usize) -> Result<()> {
         ensure!(threads > 0, "--threads needs at least one thread");
-        self.workers = if threads > 1 {
-            Some(ThreadPool::new(threads).context("starting the worker threads")?)
-        } else {
-            None
-        };
+        if threads > 1 && !self.pools.contains_key(&threads) {
+            let pool = ThreadPool::new(threads).context("starting the worker threads")?;
+            self.pools.insert(threads, pool);
+        }
+        self.threads = threads;
         Ok(())
     }
 
     /// How many workers run an inference.
     pub fn threads(&self) -> usize {
-        self.workers.as_ref().map_or(1, Workers::count)
+        self.threads
     }
 
     /// The name of the kernels that run.
@@ -253,8 +257,8 @@ impl Runner {
             .map_err(|error| anyhow::anyhow!("{error}"))?;
         let mut policy = Policy::with_kernels(&model, self.arena.as_mut_slice(), self.kernels)
             .map_err(|error| anyhow::anyhow!("{error}"))?;
-        if let Some(workers) = &self.workers {
-            policy = policy.with_workers(workers);
+        if let Some(pool) = self.pools.get(&self.threads) {
+            policy = policy.with_workers(pool);
         }
         let camera = Camera::new(&inputs.intrinsics, &inputs.extrinsics)
             .map_err(|error| anyhow::anyhow!("camera: {error}"))?;
