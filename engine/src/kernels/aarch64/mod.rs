@@ -67,7 +67,7 @@ pub(crate) mod int8 {
     pub(crate) use super::int8_lanes::{DotQ as SignedBytes, UsdotQ as Bytes};
 }
 
-// The OS's answer needs std; without it the ID registers are read (below).
+// The OS's answer needs the standard library; without it the ID registers are read (below).
 #[cfg(feature = "std")]
 use std::arch::is_aarch64_feature_detected;
 
