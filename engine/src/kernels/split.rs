@@ -29,6 +29,9 @@ type Band<'b> = dyn Fn(&ConvShape, Range<usize>, &mut [f32]) + Sync + 'b;
 /// An int8 convolution's weights, weight scales and biases.
 type Int8Parameters<'p> = (&'p [i8], &'p [f32], &'p [f32]);
 
+/// An int8 convolution kernel on an input fixed by the caller.
+type Int8Run<'r> = dyn Fn(&ConvShape, Int8Parameters<'_>, &mut [f32], Accumulate) + Sync + 'r;
+
 /// Multiply-adds below which a call runs whole: handing pieces to the other cores costs a
 /// microsecond or so.
 const MIN_SPLIT_PRODUCTS: usize = 1 << 16;
@@ -223,6 +226,33 @@ impl<'s> Split<'s> {
         done == pieces
     }
 
+    /// A 1-D int8 convolution (`run` the kernel on its input) cut into blocks of output
+    /// channels ([`Self::split_channels`]), each block's weights, scales and biases its own
+    /// run of the layer's ([`channel_block`]); run whole when it is not cut.
+    fn int8_by_channels(
+        &self,
+        shape: &ConvShape,
+        parameters: Int8Parameters<'_>,
+        output: &mut [f32],
+        accumulate: Accumulate,
+        run: &Int8Run<'_>,
+    ) {
+        let block = |channels: Range<usize>, output: &mut [f32]| {
+            let (part, parameters) = channel_block(shape, parameters, channels);
+            run(&part, parameters, output, Accumulate::Overwrite);
+            true
+        };
+        let store = match accumulate {
+            Accumulate::Overwrite => Store::Overwrite,
+            Accumulate::Add => Store::Add,
+        };
+        let cut = int8_lengths_hold(shape, parameters)
+            && self.split_channels(shape, shape.int8_weight_len(), output, store, &block);
+        if !cut {
+            run(shape, parameters, output, accumulate)
+        }
+    }
+
     /// Runs `rows(range, output)` on runs of a matrix-vector product's rows.
     fn split_matrix_rows(
         &self,
@@ -266,19 +296,11 @@ fn channel_block<'p>(
 
 /// Whether an int8 convolution's parameters are as long as its shape says (the kernels
 /// assert it; a call that breaks it runs whole, to fail there).
-fn int8_lengths_hold(shape: &ConvShape, (weight, scales, bias): (&[i8], &[f32], &[f32])) -> bool {
+fn int8_lengths_hold(shape: &ConvShape, (weight, scales, bias): Int8Parameters<'_>) -> bool {
     let out_channels = shape.out_channels;
     weight.len() == shape.int8_weight_len()
         && scales.len() == out_channels
         && bias.len() == out_channels
-}
-
-/// An int8 block's results, overwriting or added as the call says.
-fn store(accumulate: Accumulate) -> Store {
-    match accumulate {
-        Accumulate::Overwrite => Store::Overwrite,
-        Accumulate::Add => Store::Add,
-    }
 }
 
 /// How a channel block's results go into the output.
@@ -522,32 +544,14 @@ impl Kernels for Split<'_> {
         accumulate: Accumulate,
     ) {
         let kernels = self.kernels;
-        let block = |channels: Range<usize>, output: &mut [f32]| {
-            let (part, (weight, scales, bias)) =
-                channel_block(shape, (weight, weight_scales, bias), channels);
-            let overwrite = Accumulate::Overwrite;
-            kernels.conv_int8_codes(&part, input, weight, scales, bias, output, overwrite);
-            true
+        let run = |shape: &ConvShape,
+                   (weight, scales, bias): Int8Parameters<'_>,
+                   output: &mut [f32],
+                   accumulate| {
+            kernels.conv_int8_codes(shape, input, weight, scales, bias, output, accumulate)
         };
-        let whole = !int8_lengths_hold(shape, (weight, weight_scales, bias))
-            || !self.split_channels(
-                shape,
-                shape.int8_weight_len(),
-                output,
-                store(accumulate),
-                &block,
-            );
-        if whole {
-            kernels.conv_int8_codes(
-                shape,
-                input,
-                weight,
-                weight_scales,
-                bias,
-                output,
-                accumulate,
-            )
-        }
+        let parameters = (weight, weight_scales, bias);
+        self.int8_by_channels(shape, parameters, output, accumulate, &run)
     }
 
     fn conv_int8_signed_bytes(
@@ -561,32 +565,14 @@ impl Kernels for Split<'_> {
         accumulate: Accumulate,
     ) {
         let kernels = self.kernels;
-        let block = |channels: Range<usize>, output: &mut [f32]| {
-            let (part, (weight, scales, bias)) =
-                channel_block(shape, (weight, weight_scales, bias), channels);
-            let overwrite = Accumulate::Overwrite;
-            kernels.conv_int8_signed_bytes(&part, input, weight, scales, bias, output, overwrite);
-            true
+        let run = |shape: &ConvShape,
+                   (weight, scales, bias): Int8Parameters<'_>,
+                   output: &mut [f32],
+                   accumulate| {
+            kernels.conv_int8_signed_bytes(shape, input, weight, scales, bias, output, accumulate)
         };
-        let whole = !int8_lengths_hold(shape, (weight, weight_scales, bias))
-            || !self.split_channels(
-                shape,
-                shape.int8_weight_len(),
-                output,
-                store(accumulate),
-                &block,
-            );
-        if whole {
-            kernels.conv_int8_signed_bytes(
-                shape,
-                input,
-                weight,
-                weight_scales,
-                bias,
-                output,
-                accumulate,
-            )
-        }
+        let parameters = (weight, weight_scales, bias);
+        self.int8_by_channels(shape, parameters, output, accumulate, &run)
     }
 
     fn matvec_int8_codes(
