@@ -10,6 +10,8 @@
 //! Arithmetic that combines weights is done in f64 and rounded once.
 
 use std::collections::BTreeMap;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use anyhow::{Context, Result, bail, ensure};
 use scdp_engine::config::{BackboneNorm, ModelConfig, UNET_LEVELS};
@@ -833,20 +835,28 @@ fn store_keeping_on(
     threads: usize,
 ) -> Result<BTreeMap<String, Stored>> {
     let specs = crate::writer::tensor_specs(config)?;
-    let tensors: Vec<(String, Vec<f32>)> = lowered.into_iter().collect();
-    let next = std::sync::atomic::AtomicUsize::new(0);
-    let slots: Vec<std::sync::Mutex<Option<Result<Stored>>>> = tensors
-        .iter()
-        .map(|_| std::sync::Mutex::new(None))
+    let names: Vec<String> = lowered.keys().cloned().collect();
+    // Each tensor's values, taken (not copied) by the thread that stores it.
+    let inputs: Vec<Mutex<Option<Vec<f32>>>> = lowered
+        .into_values()
+        .map(|values| Mutex::new(Some(values)))
         .collect();
+    let outputs: Vec<Mutex<Option<Result<Stored>>>> =
+        names.iter().map(|_| Mutex::new(None)).collect();
+    let next = AtomicUsize::new(0);
     let work = || {
         loop {
-            let index = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            let Some((name, values)) = tensors.get(index) else {
+            let index = next.fetch_add(1, Ordering::Relaxed);
+            let Some(name) = names.get(index) else {
                 return;
             };
+            let values = inputs[index]
+                .lock()
+                .expect("a tensor")
+                .take()
+                .expect("taken once");
             let result = store_tensor(&specs, name, values, (quant, rounding), &keep_f32);
-            *slots[index].lock().expect("a tensor's slot") = Some(result);
+            *outputs[index].lock().expect("a tensor's result") = Some(result);
         }
     };
     std::thread::scope(|scope| {
@@ -856,12 +866,12 @@ fn store_keeping_on(
         work();
     });
     let mut stored = BTreeMap::new();
-    for ((name, _), slot) in tensors.iter().zip(slots) {
-        let tensor = slot
+    for (name, output) in names.into_iter().zip(outputs) {
+        let tensor = output
             .into_inner()
-            .expect("a tensor's slot")
+            .expect("a tensor's result")
             .expect("every tensor stored")?;
-        stored.insert(name.clone(), tensor);
+        stored.insert(name, tensor);
     }
     Ok(stored)
 }
@@ -870,73 +880,65 @@ fn store_keeping_on(
 fn store_tensor(
     specs: &[crate::writer::TensorSpec],
     name: &str,
-    values: &[f32],
+    values: Vec<f32>,
     (quant, rounding): (Quant, Rounding<'_>),
     keep_f32: &(impl Fn(&str) -> bool + Sync),
 ) -> Result<Stored> {
-    let (name, values) = (name.to_owned(), values.to_vec());
-    {
-        let spec = specs.iter().find(|spec| spec.name == name);
-        let int8_channels =
-            spec.and_then(|spec| spec.int8_scales.as_ref().map(|(_, channels)| *channels));
-        // The engine's exact int8 sums reach `MAX_DIGIT_CHANNELS` inputs (the widest
-        // product layer has 768); a wider convolution stays f32.
-        let too_wide = spec.is_some_and(|spec| !scdp_engine::kernels::int8_fits(&spec.dims));
-        let keep = keep_f32(&name) || too_wide;
-        let tensor = match (quant, int8_channels, spec) {
-            (Quant::Int8, Some(channels), Some(spec)) if !keep => {
-                let axis = if name.ends_with(".film.weight") {
-                    ChannelAxis::First
-                } else {
-                    ChannelAxis::Last
-                };
-                let (mut quantized, scales) = quantize_per_channel(&values, channels, axis);
-                if let Rounding::Calibrated(moments) = rounding
-                    && let Some(rounded) = gptq_rounding(moments, &name, &values, &scales, axis)?
-                {
-                    quantized = rounded;
-                }
-                // The trunk's residual-block convolutions may be refined by a second plane
-                // (whether they are is measured later, `crate::refine`): what the rounding
-                // left.
-                let residual = may_refine(&name, spec.narrow)
-                    .then(|| residual_plane(&values, &quantized, &scales, axis));
-                // Convolutions take int8 activations: their kernels go to the layout of the
-                // integer dot products (docs/FORMAT.md); FiLM matrices stay as they are.
-                let (values, residual) = match scdp_engine::kernels::int8_convolution(&spec.dims) {
-                    Some((_, input, output)) => {
-                        let stored = scdp_engine::kernels::int8_stored_elements(&spec.dims)
-                            .with_context(|| format!("size of `{name}`"))?;
-                        let pack = |values: &[i8]| {
-                            let mut packed = vec![0i8; stored];
-                            scdp_engine::kernels::pack_int8_quads(
-                                values,
-                                input,
-                                output,
-                                &mut packed,
-                            );
-                            packed
-                        };
-                        let residual = residual.map(|residual| ResidualPlane {
-                            values: pack(&residual.values),
-                            scales: residual.scales,
-                        });
-                        (pack(&quantized), residual)
-                    }
-                    None => (quantized, residual),
-                };
-                Stored::Int8 {
-                    values,
-                    scales,
-                    activations: ActivationCodes::Wide,
-                    residual,
-                    refined: false,
-                }
+    let spec = specs.iter().find(|spec| spec.name == name);
+    let int8_channels =
+        spec.and_then(|spec| spec.int8_scales.as_ref().map(|(_, channels)| *channels));
+    // The engine's exact int8 sums reach `MAX_DIGIT_CHANNELS` inputs (the widest
+    // product layer has 768); a wider convolution stays f32.
+    let too_wide = spec.is_some_and(|spec| !scdp_engine::kernels::int8_fits(&spec.dims));
+    let keep = keep_f32(name) || too_wide;
+    let tensor = match (quant, int8_channels, spec) {
+        (Quant::Int8, Some(channels), Some(spec)) if !keep => {
+            let axis = if name.ends_with(".film.weight") {
+                ChannelAxis::First
+            } else {
+                ChannelAxis::Last
+            };
+            let (mut quantized, scales) = quantize_per_channel(&values, channels, axis);
+            if let Rounding::Calibrated(moments) = rounding
+                && let Some(rounded) = gptq_rounding(moments, name, &values, &scales, axis)?
+            {
+                quantized = rounded;
             }
-            _ => Stored::F32(values),
-        };
-        Ok(tensor)
-    }
+            // The trunk's residual-block convolutions may be refined by a second plane
+            // (whether they are is measured later, `crate::refine`): what the rounding
+            // left.
+            let residual = may_refine(name, spec.narrow)
+                .then(|| residual_plane(&values, &quantized, &scales, axis));
+            // Convolutions take int8 activations: their kernels go to the layout of the
+            // integer dot products (docs/FORMAT.md); FiLM matrices stay as they are.
+            let (values, residual) = match scdp_engine::kernels::int8_convolution(&spec.dims) {
+                Some((_, input, output)) => {
+                    let stored = scdp_engine::kernels::int8_stored_elements(&spec.dims)
+                        .with_context(|| format!("size of `{name}`"))?;
+                    let pack = |values: &[i8]| {
+                        let mut packed = vec![0i8; stored];
+                        scdp_engine::kernels::pack_int8_quads(values, input, output, &mut packed);
+                        packed
+                    };
+                    let residual = residual.map(|residual| ResidualPlane {
+                        values: pack(&residual.values),
+                        scales: residual.scales,
+                    });
+                    (pack(&quantized), residual)
+                }
+                None => (quantized, residual),
+            };
+            Stored::Int8 {
+                values,
+                scales,
+                activations: ActivationCodes::Wide,
+                residual,
+                refined: false,
+            }
+        }
+        _ => Stored::F32(values),
+    };
+    Ok(tensor)
 }
 
 /// The weights file for `config` holding `state` (a state dict that passed

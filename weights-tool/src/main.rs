@@ -368,8 +368,13 @@ fn int8_weights_file(
 
 /// A progress label saying how many threads do the work.
 fn on_threads(label: &str, threads: usize) -> String {
+    format!("{label} on {}", thread_count(threads))
+}
+
+/// "1 thread", "2 threads".
+fn thread_count(threads: usize) -> String {
     let plural = if threads == 1 { "" } else { "s" };
-    format!("{label} on {threads} thread{plural}")
+    format!("{threads} thread{plural}")
 }
 
 /// An int8 weights file and what was measured to make it.
@@ -651,8 +656,8 @@ fn run(args: &RunArgs) -> anyhow::Result<()> {
         for (index, &threads) in counts.iter().enumerate() {
             let table = weights_tool::run::StageSamples::table(&samples[index]);
             println!(
-                "{iterations} runs after a warm-up, {threads} thread{}:",
-                if threads == 1 { "" } else { "s" }
+                "{iterations} runs after a warm-up, {}:",
+                thread_count(threads)
             );
             println!("  {:<36} {:>10} {:>10}", "stage", "median ms", "p99 ms");
             for (stage, (median, p99)) in table {

@@ -236,11 +236,6 @@ impl Runner {
         Ok(())
     }
 
-    /// How many workers run an inference.
-    pub fn threads(&self) -> usize {
-        self.threads
-    }
-
     /// The name of the kernels that run.
     pub fn kernels_name(&self) -> &'static str {
         self.kernels.name()
