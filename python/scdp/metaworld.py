@@ -373,7 +373,7 @@ SEAM_WINDOW = 4
 
 
 def run_episode(scene, runtime, cfg, seed, record=None, frames=None, latency=0, prefix_mode=None,
-                planned=False):
+                planned=False, planned_rows=None, within=None):
     """Diffusion Policy's receding horizon with an inference that takes `latency` control
     steps. The first chunk is computed while the arm waits; it executes the n_action_steps
     actions from "now" (rows To-1 ..). Every later chunk is started from the observation
@@ -385,7 +385,9 @@ def run_episode(scene, runtime, cfg, seed, record=None, frames=None, latency=0, 
     n_action_steps rows after them. With latency 0 this is the loop where the simulation
     waits for the policy. Only the frames the policy sees are rendered (the last To before
     each inference). `record` (a list, torch runtime only) receives each inference's inputs
-    and output; `frames` each executed step's frame with the anchors of its chunk.
+    and output; `frames` each executed step's frame with the anchors of its chunk; `within`
+    the size of every step between two consecutive actions of one chunk's plan (the scale a
+    seam's jump is judged against).
 
     Returns (solved, steps, inference milliseconds, seams): for each hand-over, the action
     executed last from the old chunk and the first SEAM_WINDOW + 1 of the new one."""
@@ -424,7 +426,9 @@ def run_episode(scene, runtime, cfg, seed, record=None, frames=None, latency=0, 
         started = time.perf_counter()
         runtime.push(image, state)
         held = committed if prefix_mode else None
-        pulled = np.array(rest, np.float32).reshape(-1, cfg["action_dim"]) if prefix_mode and planned and chunk else None
+        pulled = None
+        if prefix_mode and planned and chunk:
+            pulled = np.array(rest[:planned_rows], np.float32).reshape(-1, cfg["action_dim"])
         action_pred, new_anchors = runtime.infer(noise, held, prefix_mode or "replace", pulled)
         latencies.append((time.perf_counter() - started) * 1e3)
         if record is not None:
@@ -437,6 +441,8 @@ def run_episode(scene, runtime, cfg, seed, record=None, frames=None, latency=0, 
             break
         skip = len(committed)
         plan = list(action_pred[first + skip : first + skip + count])
+        if within is not None:
+            within.extend(np.linalg.norm(np.diff(np.array(plan), axis=0), axis=1).tolist())
         rest = list(action_pred[first + skip + count :])
         anchors = new_anchors
         if last is not None:
@@ -450,11 +456,12 @@ def run_episode(scene, runtime, cfg, seed, record=None, frames=None, latency=0, 
     return solved, steps, latencies, seams
 
 
-def seam_figures(seams):
+def seam_figures(seams, within=()):
     """At each hand-over, in action units (the Euclidean norm over the action's dimensions):
     the jump from the old chunk's last executed action to the new chunk's first, and the
     largest step-to-step change among the new chunk's first SEAM_WINDOW + 1 actions; their
-    means, 95th percentiles and maxima over every hand-over."""
+    means, 95th percentiles and maxima over every hand-over. With `within` (run_episode's
+    steps inside the chunks), their mean too, as `step_mean`."""
     if not seams:
         return {"handovers": 0}
     jumps = np.array([np.linalg.norm(new[0] - old) for old, new in seams])
@@ -465,6 +472,9 @@ def seam_figures(seams):
         figures[f"{name}_mean"] = round(float(values.mean()), 5)
         figures[f"{name}_p95"] = round(float(np.quantile(values, 0.95)), 5)
         figures[f"{name}_max"] = round(float(values.max()), 5)
+    if len(within):
+        figures["step_mean"] = round(float(np.mean(within)), 5)
+        figures["step_count"] = len(within)
     return figures
 
 
@@ -486,7 +496,8 @@ def measured_latency_steps(runtime, cfg, scene, control_hz, seed):
 
 
 def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backend="auto", gif=None,
-             agreement=False, record_count=0, latency=0, prefix_mode=None, control_hz=None, planned=False):
+             agreement=False, record_count=0, latency=0, prefix_mode=None, control_hz=None, planned=False,
+             planned_rows=None):
     cfg = load_config(model_dir)
     demo_seeds = set()
     if (model_dir / DEMOS).exists():
@@ -505,12 +516,12 @@ def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backe
     if control_hz is not None:
         latency, measured_ms = measured_latency_steps(runtime, cfg, scene, control_hz, seeds[0])
         print(f"one inference {measured_ms:.1f} ms: {latency} steps at {control_hz:g} Hz", file=sys.stderr)
-    successes, steps_taken, latencies, seams, failed = 0, [], [], [], []
+    successes, steps_taken, latencies, seams, failed, within = 0, [], [], [], [], []
     for number, seed in enumerate(seeds):
         frames = [] if gif is not None and number == 0 else None
         solved, steps, times, episode_seams = run_episode(
             scene, runtime, cfg, seed, record=record, frames=frames, latency=latency, prefix_mode=prefix_mode,
-            planned=planned)
+            planned=planned, planned_rows=planned_rows, within=within)
         seams.extend(episode_seams)
         if frames is not None:
             write_rollout_gif(gif, frames)
@@ -529,7 +540,8 @@ def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backe
         "backend": getattr(getattr(runtime, "policy", None), "backend", "torch"),
         "failed_seeds": failed,
         "latency_steps": latency, "prefix": prefix_mode, "planned": bool(prefix_mode and planned),
-        "seams": seam_figures(seams),
+        "planned_rows": planned_rows if prefix_mode and planned else None,
+        "seams": seam_figures(seams, within),
     }
     if control_hz is not None:
         result["control_hz"] = control_hz
@@ -691,43 +703,108 @@ def compare_table(path: Path) -> str:
     return "\n".join(lines)
 
 
+def handover_rule(result) -> str:
+    """How an `eval` result's chunks took over: "drop", "prefix MODE", "prefix MODE +
+    planned" (all the old plan's rows), "prefix MODE + M planned row(s)"."""
+    if not result.get("prefix"):
+        return "drop"
+    rows = result.get("planned_rows")
+    plan = "" if not result.get("planned") else " + planned" if rows is None else \
+        f" + {rows} planned row" + ("s" if rows > 1 else "")
+    return f"prefix {result['prefix']}{plan}"
+
+
+def pooled_results(results):
+    """`eval` results of one setting (task, latency, hand-over rule) on adjacent seed ranges
+    merged into one: successes, failed seeds (when every part lists them), the Wilson
+    interval, and the seam means weighted by their counts (hand-overs; steps inside the
+    chunks, when every part has them). 95th percentiles do not pool and are left out."""
+    def setting(r):
+        return (r["task"], r["latency_steps"], handover_rule(r))
+
+    pooled = []
+    for r in sorted(results, key=lambda r: (setting(r), r["first_seed"])):
+        last = pooled[-1] if pooled else None
+        if last is None or setting(last) != setting(r) or \
+                last["first_seed"] + last["episodes"] != r["first_seed"]:
+            pooled.append({**r, "seams": dict(r["seams"])})
+            continue
+        seams, more = last["seams"], r["seams"]
+        handovers = seams["handovers"] + more["handovers"]
+        for name in ("jump_mean", "early_step_max_mean"):
+            seams[name] = (seams[name] * seams["handovers"] + more[name] * more["handovers"]) / handovers
+        if "step_count" in seams and "step_count" in more:
+            count = seams["step_count"] + more["step_count"]
+            seams["step_mean"] = (seams["step_mean"] * seams["step_count"]
+                                  + more["step_mean"] * more["step_count"]) / count
+            seams["step_count"] = count
+        else:
+            seams.pop("step_mean", None)
+            seams.pop("step_count", None)
+        for name in ("jump_p95", "jump_max", "early_step_max_p95", "early_step_max_max"):
+            seams.pop(name, None)
+        seams["handovers"] = handovers
+        episodes = last["episodes"] + r["episodes"]
+        last["mean_steps"] = (last["mean_steps"] * last["episodes"] + r["mean_steps"] * r["episodes"]) / episodes
+        last["episodes"] = episodes
+        last["successes"] += r["successes"]
+        last["success_rate"] = last["successes"] / episodes
+        last["success_rate_95"] = list(wilson_interval(last["successes"], episodes))
+        if "failed_seeds" in last and "failed_seeds" in r:
+            last["failed_seeds"] = last["failed_seeds"] + r["failed_seeds"]
+        else:
+            last.pop("failed_seeds", None)
+    return pooled
+
+
 def latency_table(paths) -> str:
-    """A Markdown table of `eval` results (JSON lines) with latency: per task and latency,
-    each hand-over rule's success, its difference to dropping the stale actions at the same
-    latency (Newcombe's interval: paired where both results list their failed seeds, else for
-    independent rates), and the seam figures."""
+    """A Markdown table of `eval` results (JSON lines) with latency: per task, latency and
+    seed range (a setting's results on adjacent seed ranges pooled), each hand-over rule's
+    success, its difference to dropping the stale actions on the same seeds (pooled or not) (Newcombe's
+    interval: paired where both results list their failed seeds, else for independent
+    rates), and the seam figures against dropping's and against a step inside a chunk."""
     results = []
     for path in paths:
         for line in Path(path).read_text().splitlines():
             if line.strip():
                 results.append(json.loads(line))
-    def rule(r):
+    parts, results = results, pooled_results(results)
+
+    def rank(r):
         if not r.get("prefix"):
-            return "drop"
-        return f"prefix {r['prefix']}" + (" + planned" if r.get("planned") else "")
-    order = ["drop", "prefix replace", "prefix noised", "prefix replace + planned", "prefix noised + planned"]
-    results.sort(key=lambda r: (r["task"], r["latency_steps"], order.index(rule(r))))
-    lines = ["| task | D | hand-over | success (95%) | minus drop (95%) | seam jump mean / p95 | "
-             "largest early step mean | mean steps |",
-             "|---|---:|---|---|---|---|---|---:|"]
+            return (0, 0)
+        mode = ("replace", "noised").index(r["prefix"])
+        if not r.get("planned"):
+            return (1, mode)
+        return (2 + (r.get("planned_rows") or 99), mode)
+
+    def seeds(r):
+        return f"{r['first_seed']}-{r['first_seed'] + r['episodes'] - 1}"
+
+    results.sort(key=lambda r: (r["task"], r["latency_steps"], r["first_seed"], -r["episodes"], rank(r)))
+    lines = ["| task | D | seeds | hand-over | success (95%) | minus drop (95%) | seam jump mean | "
+             "jump / drop's | jump / step inside a chunk | largest early step mean | mean steps |",
+             "|---|---:|---|---|---|---|---:|---:|---:|---:|---:|"]
     for r in results:
-        drop = next((d for d in results if d["task"] == r["task"] and d["latency_steps"] == r["latency_steps"]
-                     and rule(d) == "drop"), None)
+        # Dropping on the same seeds: pooled, or one of the parts when only these seeds ran.
+        drop = next((d for d in results + parts if (d["task"], d["latency_steps"], seeds(d)) ==
+                     (r["task"], r["latency_steps"], seeds(r)) and handover_rule(d) == "drop"), None)
         low, high = r["success_rate_95"]
-        versus = ""
+        versus, ratio = "", ""
         if drop is not None and drop is not r:
-            same_seeds = (r["first_seed"], r["episodes"]) == (drop["first_seed"], drop["episodes"])
-            if same_seeds and "failed_seeds" in r and "failed_seeds" in drop:
+            if "failed_seeds" in r and "failed_seeds" in drop:
                 (a, b), kind = paired_difference_interval(r, drop)["difference_95"], " paired"
             else:
                 (a, b), kind = difference_interval(r["successes"], r["episodes"], drop["successes"],
                                                    drop["episodes"]), ""
-            versus = f"{r['success_rate'] - drop['success_rate']:+.2f} ({a:+.3f} .. {b:+.3f}){kind}"
+            versus = f"{r['success_rate'] - drop['success_rate']:+.3f} ({a:+.3f} .. {b:+.3f}){kind}"
+            ratio = f"{r['seams']['jump_mean'] / drop['seams']['jump_mean']:.2f}x"
         seams = r["seams"]
+        step = f"{seams['jump_mean'] / seams['step_mean']:.2f}x" if "step_mean" in seams else ""
         lines.append(
-            f"| {r['task']} | {r['latency_steps']} | {rule(r)} | {r['successes']}/{r['episodes']} "
-            f"({low:.3f} - {high:.3f}) | {versus} | {seams['jump_mean']:.3f} / {seams['jump_p95']:.3f} | "
-            f"{seams['early_step_max_mean']:.3f} | {r['mean_steps']:.1f} |")
+            f"| {r['task']} | {r['latency_steps']} | {seeds(r)} | {handover_rule(r)} | "
+            f"{r['successes']}/{r['episodes']} ({low:.3f} - {high:.3f}) | {versus} | {seams['jump_mean']:.3f} | "
+            f"{ratio} | {step} | {seams['early_step_max_mean']:.3f} | {r['mean_steps']:.1f} |")
     return "\n".join(lines)
 
 
@@ -805,6 +882,8 @@ def main(argv=None) -> None:
     p.add_argument("--planned", action="store_true",
                    help="with --prefix: also give the old chunk's plan after the prefix, which the "
                         "new chunk is pulled towards")
+    p.add_argument("--planned-rows", type=int, metavar="M",
+                   help="with --planned: give at most M of the old plan's rows (default: all)")
     p = commands.add_parser("agreement", help="a weights file on recorded inferences, against their torch actions")
     p.add_argument("--weights", type=Path, required=True, help="a weights file of convert")
     p.add_argument("--observations", type=Path, required=True,
@@ -832,7 +911,7 @@ def main(argv=None) -> None:
     elif args.command == "eval":
         evaluate(args.task, args.model_dir, args.runtime, args.episodes, args.first_seed, args.threads,
                  args.backend, args.gif, args.agreement, args.record, args.latency_steps, args.prefix,
-                 args.control_hz, args.planned)
+                 args.control_hz, args.planned, args.planned_rows)
 
 
 if __name__ == "__main__":

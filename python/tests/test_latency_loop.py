@@ -1,8 +1,10 @@
 """The closed loop with inference latency (`scdp.metaworld.run_episode`), on a fake scene and
 a fake runtime: which actions run, which are given as the committed prefix and the planned
-rows, and the seam figures. No simulator, no engine."""
+rows, the seam figures and their table. No simulator, no engine."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -110,4 +112,64 @@ def test_seam_figures():
     assert figures["jump_mean"] == pytest.approx(2.5)
     assert figures["jump_max"] == pytest.approx(5.0)
     assert figures["early_step_max_mean"] == pytest.approx(1.5)
+    assert "step_mean" not in figures
+    assert metaworld.seam_figures(seams, [1.0, 2.0, 6.0])["step_mean"] == pytest.approx(3.0)
     assert metaworld.seam_figures([]) == {"handovers": 0}
+
+
+def test_steps_within_chunks_leave_the_seams_out():
+    scene, runtime = FakeScene(), FakeRuntime()
+    within = []
+    metaworld.run_episode(scene, runtime, CFG, 7, latency=2, within=within)
+    # The fake chunks' rows are (chunk, row): a step inside a chunk moves one row (norm 1),
+    # a hand-over changes the chunk too.
+    count = CFG["n_action_steps"]
+    # Every chunk whose plan ran (the last inference may come after the episode's end).
+    assert len(within) in ((count - 1) * len(runtime.calls), (count - 1) * (len(runtime.calls) - 1))
+    np.testing.assert_allclose(within, 1.0)
+
+
+def test_planned_rows_limit_the_old_plan_given():
+    scene, runtime = FakeScene(), FakeRuntime()
+    metaworld.run_episode(scene, runtime, CFG, 7, latency=2, prefix_mode="replace", planned=True, planned_rows=1)
+    assert all(len(planned) == 1 for _, planned in runtime.calls[1:])
+
+
+def _result(first_seed, successes, failed, jump, handovers, step=None, steps_within=0, rule=("replace", True, 1)):
+    prefix, planned, rows = rule
+    seams = {"handovers": handovers, "jump_mean": jump, "jump_p95": 2 * jump, "jump_max": 3 * jump,
+             "early_step_max_mean": jump, "early_step_max_p95": 1.0, "early_step_max_max": 1.0}
+    if step is not None:
+        seams.update(step_mean=step, step_count=steps_within)
+    return {"task": "t", "latency_steps": 4, "first_seed": first_seed, "episodes": 100, "successes": successes,
+            "success_rate": successes / 100, "success_rate_95": [0, 1], "failed_seeds": failed,
+            "mean_steps": 10.0 * (1 + first_seed // 1100), "prefix": prefix, "planned": planned,
+            "planned_rows": rows, "seams": seams}
+
+
+def test_adjacent_seed_ranges_of_one_setting_pool():
+    parts = [_result(1000, 90, [1003] * 10, 0.1, 100, 0.2, 300), _result(1100, 80, [1105] * 20, 0.4, 300, 0.1, 100),
+             _result(1300, 70, [], 0.5, 10), _result(1000, 50, [], 0.9, 10, rule=(None, False, None))]
+    pooled = {(r["first_seed"], r["episodes"], metaworld.handover_rule(r)): r
+              for r in metaworld.pooled_results(parts)}
+    whole = pooled[(1000, 200, "prefix replace + 1 planned row")]
+    assert whole["successes"] == 170 and len(whole["failed_seeds"]) == 30
+    assert whole["seams"]["handovers"] == 400
+    assert whole["seams"]["jump_mean"] == pytest.approx((0.1 * 100 + 0.4 * 300) / 400)
+    assert whole["seams"]["step_mean"] == pytest.approx((0.2 * 300 + 0.1 * 100) / 400)
+    assert "jump_p95" not in whole["seams"]
+    assert whole["mean_steps"] == pytest.approx(15.0)
+    low, high = whole["success_rate_95"]
+    assert low < 0.85 < high
+    # Not adjacent (1200-1299 missing), or another rule: left alone.
+    assert pooled[(1300, 100, "prefix replace + 1 planned row")]["successes"] == 70
+    assert pooled[(1000, 100, "drop")]["successes"] == 50
+    # The parts themselves are not changed.
+    assert parts[0]["successes"] == 90 and parts[0]["seams"]["handovers"] == 100
+
+
+def test_the_documented_latency_table_is_the_shipped_results():
+    root = Path(__file__).resolve().parents[2]
+    table = metaworld.latency_table(sorted(root.glob("tests/fixtures/trained/*/latency.jsonl")))
+    documented = (root / "docs" / "METAWORLD.md").read_text()
+    assert table in documented
