@@ -4,7 +4,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
 use clap::{Parser, Subcommand, ValueEnum};
@@ -298,6 +298,8 @@ fn int8_weights_file(
     let lowered = lowering::lower(config, state_dict)?;
     let f32_stored = lowering::store(config, lowered.clone(), Quant::F32, Rounding::Nearest)?;
     let f32_file = write_weights_file(config, &f32_stored)?;
+    let mut stages = Vec::new();
+    let started = Instant::now();
     let moments = match args.rounding {
         RoundingArg::Gptq => Some(weights_tool::calibrate::input_moments(
             &f32_file,
@@ -307,12 +309,18 @@ fn int8_weights_file(
         )?),
         RoundingArg::Nearest => None,
     };
+    if moments.is_some() {
+        stages.push(("calibration", started.elapsed()));
+    }
     let rounding = moments
         .as_ref()
         .map_or(Rounding::Nearest, Rounding::Calibrated);
+    let started = Instant::now();
     let spinner = spinner(&on_threads("rounding", args.threads));
     let mut stored = lowering::store_on(config, lowered, (Quant::Int8, rounding), args.threads)?;
     spinner.finish_and_clear();
+    stages.push(("rounding", started.elapsed()));
+    let started = Instant::now();
     let budget = Budget::with_increase(args.action_budget);
     let refinement = match args.refine {
         RefineArg::None => None,
@@ -337,6 +345,10 @@ fn int8_weights_file(
             },
         )?),
     };
+    if refinement.is_some() {
+        stages.push(("refinement", started.elapsed()));
+    }
+    let started = Instant::now();
     let report = match args.activations {
         ActivationsArg::Wide => None,
         ActivationsArg::Measured if scenes.is_empty() => None,
@@ -359,10 +371,14 @@ fn int8_weights_file(
             },
         )?),
     };
+    if report.is_some() {
+        stages.push(("activation widths", started.elapsed()));
+    }
     Ok(Int8File {
         bytes: write_weights_file(config, &stored)?,
         widths: report,
         refinement,
+        stages,
     })
 }
 
@@ -382,6 +398,8 @@ struct Int8File {
     bytes: Vec<u8>,
     widths: Option<weights_tool::activations::WidthReport>,
     refinement: Option<weights_tool::refine::RefineReport>,
+    /// The int8 stages that ran, with how long each took.
+    stages: Vec<(&'static str, Duration)>,
 }
 
 /// `convert`'s lines about an int8 file's refined layers.
@@ -515,6 +533,7 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
                 bytes,
                 widths: None,
                 refinement: None,
+                stages: Vec::new(),
             })
         }
         Quant::Int8 => int8_weights_file(args, &config, &state_dict, &scenes),
@@ -523,6 +542,7 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
         bytes,
         widths: report,
         refinement,
+        stages,
     } = int8.with_context(|| format!("converting {}", args.checkpoint.display()))?;
     std::fs::write(&args.output, &bytes)
         .with_context(|| format!("{}: cannot write", args.output.display()))?;
@@ -552,6 +572,15 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
         for (name, why) in weights_tool::lowering::int8_kept_f32(&config) {
             println!("  kept f32       {name}: {why}");
         }
+        let times: Vec<String> = stages
+            .iter()
+            .map(|(stage, took)| format!("{stage} {:.1} s", took.as_secs_f64()))
+            .collect();
+        println!(
+            "  took           {} (on {})",
+            times.join(", "),
+            thread_count(args.threads)
+        );
     }
     println!("  parameters     {}", state_dict.numel());
     println!(

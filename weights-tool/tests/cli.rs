@@ -456,6 +456,17 @@ fn convert_calibrates_int8_rounding_on_scenes() {
         stdout.contains("activations    measured on 3 calibration scenes"),
         "{stdout}"
     );
+    // Each stage that ran, in order, with its time.
+    let took = stdout
+        .lines()
+        .find(|line| line.starts_with("  took"))
+        .unwrap_or_else(|| panic!("{stdout}"));
+    let stages: Vec<&str> = ["calibration", "rounding", "refinement", "activation widths"]
+        .into_iter()
+        .filter(|stage| took.contains(&format!("{stage} ")))
+        .collect();
+    assert_eq!(stages.len(), 4, "{took}");
+    assert!(took.find("calibration").unwrap() < took.find("activation widths").unwrap());
     // The residual-block layers, each with its measured effect and choice: the activation
     // codes of the trunk's 19 and the U-Net's 24 (12 blocks of two convolutions), and the
     // refinement of the trunk's.
