@@ -446,6 +446,19 @@ fn convert_calibrates_int8_rounding_on_scenes() {
     ];
     let output = convert(&[&int8[..], &scenes[..]].concat(), &calibrated);
     assert!(output.status.success(), "{}", text(&output.stderr));
+    // Every core by default; one thread, or three (scenes shared out unevenly), choose the
+    // same and write the same bytes.
+    let bytes = std::fs::read(&calibrated).unwrap();
+    for threads in ["1", "3"] {
+        let other = path(&format!("gptq-{threads}.scdp"));
+        let threads_arg = ["--threads", threads];
+        let run = convert(&[&int8[..], &scenes[..], &threads_arg[..]].concat(), &other);
+        assert!(run.status.success(), "{}", text(&run.stderr));
+        assert!(
+            std::fs::read(&other).unwrap() == bytes,
+            "--threads {threads} wrote other bytes"
+        );
+    }
     let stdout = text(&output.stdout);
     let refined_chosen = refinements_chosen(&stdout);
     assert!(
