@@ -1,7 +1,7 @@
 //! Workers: whatever runs pieces of one kernel call on several cores. The engine knows only
 //! this contract, so firmware maps it onto its RTOS tasks or cores and hosted code onto
-//! threads ([`super::pool::ThreadPool`], with the `std` feature); [`super::split::Split`]
-//! decides the pieces.
+//! threads (the `scdp-threads` crate's `ThreadPool`, beside the engine in `engine/threads`);
+//! [`super::split::Split`] decides the pieces.
 
 /// Runs the pieces of a piece of work, possibly at the same time on different cores.
 ///
