@@ -1817,6 +1817,51 @@ fn narrow_byte_convolution_is_bit_identical_on_every_backend() {
     }
 }
 
+/// Small byte convolutions of every count of output pixels from 1 to 27, input channels
+/// from one quad to five (odd counts of quads too) and output channels in fours and not:
+/// every remainder of the SIMD tiles' pixels (the I8MM matrix tiles take them in pairs,
+/// 12 or 4 at a time), channels and inputs (8 a step there), on whole bytes (1x1 and padded
+/// 3x3 kernels) and on signed narrow codes (1-D, 5 taps), bit for bit the reference's.
+#[test]
+fn byte_convolutions_cover_every_tile_remainder() {
+    let mut rng = Lcg(89);
+    let backends = backends();
+    for positions in 1..=27 {
+        for in_channels in [4, 8, 12, 20] {
+            for out_channels in [4, 8, 12, 13, 20] {
+                for kernel in [1, 3] {
+                    let shape = ConvShape::square(
+                        (1, positions, in_channels),
+                        out_channels,
+                        kernel,
+                        1,
+                        kernel / 2,
+                    );
+                    let problem = ByteCase::random(&mut rng, shape, 0.5);
+                    let initial = rng.vec(shape.output_len());
+                    let what = format!("bytes {shape:?}");
+                    problem.check_backends(&backends, Accumulate::Add, &initial, &what);
+                }
+                let shape = ConvShape::sequence(positions, in_channels + 1, out_channels, 5, 1, 2);
+                let mut code_case = CodeCase::random(&mut rng, shape);
+                code_case.codes = (0..shape.input_len())
+                    .map(|i| match i % 9 {
+                        2 => 127,
+                        5 => -127,
+                        _ => (rng.next() * 127.0).round() as i32,
+                    })
+                    .collect();
+                let initial = rng.vec(shape.output_len());
+                let expected = code_case.run(&Scalar, Accumulate::Add, &initial);
+                for (name, kernels) in &backends {
+                    let found = code_case.run_signed_bytes(*kernels, Accumulate::Add, &initial);
+                    assert_same_bits(&found, &expected, &format!("signed {name} {shape:?}"));
+                }
+            }
+        }
+    }
+}
+
 /// The tiles take whole bytes only while a kernel's exact sum fits i32
 /// (`MAX_BYTE_TERMS` products), a lower bound than the digit planes' (`MAX_DIGIT_TERMS`).
 #[cfg(target_arch = "x86_64")]

@@ -61,8 +61,9 @@ pub enum Backend {
     Neon,
     /// aarch64 NEON with the dot-product extension: the int8 convolutions on `sdot`.
     Dot,
-    /// aarch64 with I8MM: as [`Backend::Dot`], and whole bytes (the stem, the narrow
-    /// activations) on `usdot`.
+    /// aarch64 with I8MM: the convolutions on bytes (the stem, the trunk's narrow
+    /// activations on `usmmla`, the U-Net's on `smmla`) on its matrix multiplies, the rest as
+    /// [`Backend::Dot`].
     I8mm,
 }
 

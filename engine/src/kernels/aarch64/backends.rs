@@ -30,7 +30,8 @@ pub struct Dot {
     _checked: (),
 }
 
-/// NEON with the dot product and I8MM (`usdot` on whole bytes). Reachable only through
+/// NEON with the dot product and I8MM (the byte convolutions on `usmmla` and `smmla`, the
+/// digit planes on `usdot`). Reachable only through
 /// [`I8mm::detect`].
 #[derive(Debug)]
 pub struct I8mm {
@@ -126,30 +127,8 @@ fn conv_pixel_f32(
     unsafe { conv_one_pixel(shape, (input, weight, bias), (out_y, out_x), output) }
 }
 
-/// `Kernels::conv_int8_bytes` with `usdot`.
-///
-/// # Safety
-/// The CPU has I8MM.
-#[target_feature(enable = "neon,dotprod,i8mm")]
-unsafe fn checked_conv_bytes(
-    shape: &ConvShape,
-    input: &ByteRows<'_>,
-    parameters: (&[i8], &[f32], &[f32]),
-    output: &mut [f32],
-    accumulate: Accumulate,
-) {
-    const TILE: (usize, usize) = int8::BYTES_TILE;
-    // SAFETY: I8MM (this function's contract).
-    unsafe {
-        simd::int8::checked_conv_bytes::<int8::Bytes, { TILE.0 }, { TILE.1 }>(
-            shape, input, parameters, output, accumulate,
-        )
-    }
-}
-
 /// `Kernels::conv_int8_signed_bytes` with `sdot` (signed by signed: the weights as they
-/// are; `usdot` would need them offset by 128 and the offset's share taken back out: the
-/// same sums, more work).
+/// are).
 ///
 /// # Safety
 /// The CPU has the dot-product extension.
@@ -300,26 +279,6 @@ impl Kernels for Neon {
     shared_kernels!(neon);
 }
 
-/// `Kernels::conv_int8_signed_bytes` on `sdot`, for the backends that have it.
-macro_rules! signed_bytes_on_sdot {
-    () => {
-        fn conv_int8_signed_bytes(
-            &self,
-            shape: &ConvShape,
-            input: &SignedByteRows<'_>,
-            weight: &[i8],
-            weight_scales: &[f32],
-            bias: &[f32],
-            output: &mut [f32],
-            accumulate: Accumulate,
-        ) {
-            let parameters = (weight, weight_scales, bias);
-            // SAFETY: `self` exists only when the dot product was detected.
-            unsafe { checked_conv_signed_bytes(shape, input, parameters, output, accumulate) }
-        }
-    };
-}
-
 /// `Kernels::matvec_int8_codes` on `sdot` ([`super::matvec`]), for the backends that
 /// have it; the shared kernel of `int8::$module` for rows too wide for it.
 macro_rules! matvec_on_sdot {
@@ -367,7 +326,21 @@ impl Kernels for Dot {
         NarrowForm::Bytes
     }
 
-    signed_bytes_on_sdot!();
+    fn conv_int8_signed_bytes(
+        &self,
+        shape: &ConvShape,
+        input: &SignedByteRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let parameters = (weight, weight_scales, bias);
+        // SAFETY: `self` exists only when the dot product was detected.
+        unsafe { checked_conv_signed_bytes(shape, input, parameters, output, accumulate) }
+    }
+
     matvec_on_sdot!(dot);
     shared_kernels!(dot);
 }
@@ -389,13 +362,28 @@ impl Kernels for I8mm {
     ) {
         let parameters = (weight, weight_scales, bias);
         // SAFETY: `self` exists only when I8MM was detected.
-        unsafe { checked_conv_bytes(shape, input, parameters, output, accumulate) }
+        unsafe { super::mmla::checked_conv_bytes(shape, input, parameters, output, accumulate) }
     }
 
-    signed_bytes_on_sdot!();
+    fn conv_int8_signed_bytes(
+        &self,
+        shape: &ConvShape,
+        input: &SignedByteRows<'_>,
+        weight: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let parameters = (weight, weight_scales, bias);
+        // SAFETY: `self` exists only when I8MM was detected.
+        unsafe {
+            super::mmla::checked_conv_signed_bytes(shape, input, parameters, output, accumulate)
+        }
+    }
     matvec_on_sdot!(i8mm);
 
-    /// `usdot` multiplies whole bytes.
+    /// `usmmla` multiplies whole bytes.
     fn narrow_form(&self) -> NarrowForm {
         NarrowForm::Bytes
     }

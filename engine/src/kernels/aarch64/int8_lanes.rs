@@ -5,16 +5,16 @@
 
 use core::arch::aarch64::{
     float32x4_t, float64x2_t, int32x4_t, vaddlvq_s32, vaddq_f64, vaddq_s32, vcvt_f32_f64,
-    vcvt_high_f32_f64, vcvtq_f32_s32, vcvtq_f64_s64, vdupq_n_f32, vdupq_n_f64, vdupq_n_s8,
-    vdupq_n_s32, vdupq_n_s64, veorq_s8, vget_high_s16, vget_low_s8, vget_low_s16, vget_low_s32,
-    vld1_s8, vld1q_f32, vld1q_s8, vld1q_s16, vld1q_s32, vmovl_high_s32, vmovl_s8, vmovl_s32,
-    vmull_high_s8, vmull_s8, vmull_s16, vmulq_f32, vmulq_f64, vpaddlq_s16, vpaddq_s32,
-    vreinterpretq_s8_s32, vreinterpretq_s16_s32, vreinterpretq_s16_s64, vreinterpretq_s32_s8,
-    vreinterpretq_s32_s16, vst1q_f32,
+    vcvt_high_f32_f64, vcvtq_f32_s32, vcvtq_f64_s64, vdupq_n_f32, vdupq_n_f64, vdupq_n_s32,
+    vdupq_n_s64, vget_high_s16, vget_low_s8, vget_low_s16, vget_low_s32, vld1_s8, vld1q_f32,
+    vld1q_s8, vld1q_s16, vld1q_s32, vmovl_high_s32, vmovl_s8, vmovl_s32, vmull_high_s8, vmull_s8,
+    vmull_s16, vmulq_f32, vmulq_f64, vpaddlq_s16, vpaddq_s32, vreinterpretq_s8_s32,
+    vreinterpretq_s16_s32, vreinterpretq_s16_s64, vreinterpretq_s32_s8, vreinterpretq_s32_s16,
+    vst1q_f32,
 };
 
 use crate::kernels::ops;
-use crate::kernels::simd::int8::{CenteredByteLanes, Int8Lanes, SignedByteLanes, WholeByteLanes};
+use crate::kernels::simd::int8::{CenteredByteLanes, Int8Lanes, SignedByteLanes};
 
 /// Baseline NEON: a quad's products by `smull` / `smull2` (i8 x i8 into i16), adjacent pairs
 /// widened and added into i32 (`saddlp`), the two pairs of a channel added (`addp`): exact
@@ -26,7 +26,8 @@ pub(crate) struct WideningQ;
 pub(crate) struct DotQ;
 
 /// I8MM: `usdot` multiplies four u8 activations by four i8 weights into each i32 lane, exact
-/// for whole bytes (0..=255): VNNI's `vpdpbusd`, so the tiles of whole bytes run on it.
+/// (VNNI's `vpdpbusd`); the digit tiles run on it (whole bytes take the matrix multiplies,
+/// `super::mmla`).
 pub(crate) struct UsdotQ;
 
 /// `sum + a . w` per i32 lane by widening multiplies.
@@ -319,26 +320,3 @@ unsafe impl CenteredByteLanes for DotQ {
         unsafe { vld1q_s32(from) }
     }
 }
-
-// SAFETY: as for its `Int8Lanes`; the weights offset by 128 are the unsigned side.
-unsafe impl SignedByteLanes for UsdotQ {
-    const WEIGHT_OFFSET: i32 = 128;
-    #[inline(always)]
-    unsafe fn offset_bytes(bytes: int32x4_t) -> int32x4_t {
-        // SAFETY: NEON (trait contract).
-        unsafe { vreinterpretq_s32_s8(veorq_s8(vreinterpretq_s8_s32(bytes), vdupq_n_s8(i8::MIN))) }
-    }
-    #[inline(always)]
-    unsafe fn splat_integers(value: i32) -> int32x4_t {
-        // SAFETY: NEON (trait contract).
-        unsafe { vdupq_n_s32(value) }
-    }
-    #[inline(always)]
-    unsafe fn integers_scaled(sums: int32x4_t, scale: f32) -> float32x4_t {
-        // SAFETY: NEON (trait contract). `scvtf` rounds as FPCR says: to nearest.
-        unsafe { vmulq_f32(vcvtq_f32_s32(sums), vdupq_n_f32(scale)) }
-    }
-}
-
-// SAFETY: `usdot` adds its four u8 x i8 products into the i32 lane exactly.
-unsafe impl WholeByteLanes for UsdotQ {}

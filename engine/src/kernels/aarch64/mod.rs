@@ -1,7 +1,8 @@
 //! aarch64 kernels, chosen at run time from what the CPU reports: NEON (every aarch64
 //! application core: Cortex-A53, A72), NEON with the dot-product extension (`sdot`:
-//! Cortex-A55, A76, A78AE (Jetson Orin), Neoverse N1, Apple M1), and I8MM (`usdot`:
-//! Neoverse V1, V2, N2, Cortex-A510/A710 and later, Apple M2 on).
+//! Cortex-A55, A76, A78AE (Jetson Orin), Neoverse N1, Apple M1), and I8MM (`usdot`, and the
+//! matrix multiplies `usmmla` and `smmla` ([`mmla`]): Neoverse V1, V2, N2, Cortex-A510/A710
+//! and later, Apple M2 on).
 //!
 //! The f32 kernels are the shared bodies of `simd` on [`lanes::Neon8`], eight lanes as on
 //! AVX2, so they give AVX2's bits; the int8 convolutions are the shared tiles on
@@ -13,6 +14,7 @@ mod bytes;
 mod int8_lanes;
 mod lanes;
 mod matvec;
+mod mmla;
 
 pub use backends::{Dot, I8mm, Neon};
 
@@ -61,10 +63,10 @@ pub(crate) mod int8 {
         "neon,dotprod,i8mm"
     );
 
-    /// The tile of bytes, whole or signed (one plane: 16 sums, 4 weight vectors, the
-    /// broadcast).
+    /// The `sdot` tile of bytes, signed or centred (one plane: 16 sums, 4 weight vectors,
+    /// the broadcast).
     pub(crate) const BYTES_TILE: (usize, usize) = (4, 4);
-    pub(crate) use super::int8_lanes::{DotQ as SignedBytes, UsdotQ as Bytes};
+    pub(crate) use super::int8_lanes::DotQ as SignedBytes;
 }
 
 // The OS's answer needs the standard library; without it the ID registers are read (below).

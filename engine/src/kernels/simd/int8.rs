@@ -41,16 +41,18 @@ mod matvec;
 mod tiles;
 
 use crate::kernels::scalar::{
-    assert_byte_lengths, assert_code_lengths, assert_int8_lengths, assert_int8_pixel_lengths,
-    assert_signed_byte_lengths, conv_int8_bytes, conv_int8_pixel, conv_int8_pixels,
+    assert_code_lengths, assert_int8_lengths, assert_int8_pixel_lengths,
+    assert_signed_byte_lengths, conv_int8_pixel, conv_int8_pixels,
 };
-use crate::kernels::{Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, SignedByteRows};
+use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, SignedByteRows};
 #[cfg(target_arch = "aarch64")]
 pub(crate) use lanes::CenteredByteLanes;
-pub(crate) use lanes::{Int8Lanes, SignedByteLanes, WholeByteLanes};
+#[cfg(target_arch = "x86_64")]
+pub(crate) use lanes::WholeByteLanes;
+pub(crate) use lanes::{Int8Lanes, SignedByteLanes};
 pub(crate) use matvec::matvec_codes;
 #[cfg(target_arch = "aarch64")]
-pub(crate) use tiles::CenteredBytes;
+pub(crate) use tiles::{CenteredBytes, PREFETCH_QUADS, PixelTile, ZERO_ROW, store};
 pub(crate) use tiles::{byte_tiles_apply, conv, conv_pixel, tiles_apply};
 
 /// A backend's [`conv`] wrapper.
@@ -156,14 +158,17 @@ pub(crate) unsafe fn checked_conv_codes(
 ///
 /// # Safety
 /// The CPU supports `L`.
+#[cfg(target_arch = "x86_64")]
 #[inline(always)]
 pub(crate) unsafe fn checked_conv_bytes<L: WholeByteLanes, const P: usize, const V: usize>(
     shape: &ConvShape,
-    input: &ByteRows<'_>,
+    input: &crate::kernels::ByteRows<'_>,
     parameters: (&[i8], &[f32], &[f32]),
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
+    use crate::kernels::ByteRows;
+    use crate::kernels::scalar::{assert_byte_lengths, conv_int8_bytes};
     assert_byte_lengths(shape, input, parameters, output.len());
     if !byte_tiles_apply(shape) {
         return conv_int8_bytes(shape, input, parameters, output, accumulate);

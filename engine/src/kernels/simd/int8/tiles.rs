@@ -14,13 +14,13 @@ use crate::kernels::{
 
 /// Zero codes that a pixel whose kernel tap falls in the padding reads instead of an input
 /// row (as digits: 2,048 zero bytes): a row of the widest input the kernels take.
-static ZERO_ROW: [i16; MAX_DIGIT_CHANNELS] = [0; MAX_DIGIT_CHANNELS];
+pub(crate) static ZERO_ROW: [i16; MAX_DIGIT_CHANNELS] = [0; MAX_DIGIT_CHANNELS];
 
 /// The pixels of one tile: how many there are (`count <= P`; the last tile of a map may be
 /// short) and where they read.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct PixelTile<const P: usize> {
-    count: usize,
+    pub(crate) count: usize,
     /// Input coordinates of kernel tap (0, 0) per pixel, negative inside the padding.
     pub(crate) origins: [(isize, isize); P],
 }
@@ -40,7 +40,12 @@ impl<const P: usize> PixelTile<P> {
 
     /// The input row (pixel) each pixel of the tile reads at kernel tap `(kernel_y,
     /// kernel_x)`, or `None` where the tap lies in the padding or the pixel is past `count`.
-    fn rows(&self, shape: &ConvShape, kernel_y: usize, kernel_x: usize) -> [Option<usize>; P] {
+    pub(crate) fn rows(
+        &self,
+        shape: &ConvShape,
+        kernel_y: usize,
+        kernel_x: usize,
+    ) -> [Option<usize>; P] {
         tap_rows(shape, &self.origins, self.count, (kernel_y, kernel_x))
     }
 }
@@ -390,7 +395,7 @@ impl<L: CenteredByteLanes> TileInput<L> for CenteredBytes<'_> {
 /// Quad rows of weights [`CodeRows`]' tiles ask L2 for ahead of the one they read (64: 16
 /// KB for the AVX-512 tile; with 16 rows into L1 the int8 denoising loop took
 /// 1.17-1.19x as long on Zen 4, whose L3 is small enough for the stream to matter).
-const PREFETCH_QUADS: usize = 64;
+pub(crate) const PREFETCH_QUADS: usize = 64;
 
 /// The codes times the widened weights, two lanes a channel, added up per tap in i32
 /// (exact: [`MAX_DIGIT_CHANNELS`]), the taps' sums in f64 (exact), rounded and scaled.
@@ -562,7 +567,7 @@ impl<L: SignedByteLanes> TileInput<L> for SignedByteRows<'_> {
 /// The CPU supports `L`; `weight_scales` and `bias` hold `V WIDTH` floats; `out` holds the
 /// `V WIDTH` channels of each of the `count` pixels, `stride` apart.
 #[inline(always)]
-unsafe fn store<L: Int8Lanes, const P: usize, const V: usize>(
+pub(crate) unsafe fn store<L: Int8Lanes, const P: usize, const V: usize>(
     totals: &[[L::Floats; V]; P],
     count: usize,
     (weight_scales, bias): (&[f32], &[f32]),
