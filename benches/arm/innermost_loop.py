@@ -1,6 +1,7 @@
 """Prints, as llvm-mca input, the innermost loop of one function of an aarch64 disassembly
 (`aarch64-linux-gnu-objdump -d --no-show-raw-insn`) that holds the most of one mnemonic:
-the loop is the instructions from a backward branch's target to the branch.
+a loop is the instructions from a backward branch's target to the branch, innermost when
+no loop of another target lies inside it.
 
 python3 innermost_loop.py DISASSEMBLY FUNCTION_SUBSTRING MNEMONIC
 """
@@ -26,12 +27,18 @@ def function_body(lines, name):
 def main():
     path, name, mnemonic = sys.argv[1:4]
     body = function_body(open(path).read().split("\n"), name)
-    best = None
+    loops = []
     for address, instruction in body:
         branch = re.match(r"^(b\.\w+|b|cbnz|cbz|tbnz|tbz)\s+(?:.*,\s*)?([0-9a-f]+) <", instruction)
-        if not branch or int(branch.group(2), 16) >= address:
+        if branch and int(branch.group(2), 16) < address:
+            loops.append((int(branch.group(2), 16), address))
+    best = None
+    for target, address in loops:
+        # Innermost only (a loop of another header inside it makes it an outer one): an
+        # outer loop holds its inner loops' multiplies too, more than any one of them when
+        # the compiler made copies of a tile's loop.
+        if any(target < inner[0] and inner[1] <= address for inner in loops):
             continue
-        target = int(branch.group(2), 16)
         loop = [text for at, text in body if target <= at <= address]
         count = sum(1 for text in loop if text.split()[0] == mnemonic)
         # The most of the mnemonic, then the shortest loop.

@@ -15,8 +15,9 @@ aarch64-linux-gnu-objdump -d --no-show-raw-insn \
 loops=(
   "trunk digits (dot)|aarch644int83dot4conv|sdot"
   "trunk bytes centred (dot)|aarch645bytes18checked_conv_bytes|sdot"
-  "trunk bytes (i8mm)|backends18checked_conv_bytes|usdot"
-  "U-Net signed narrow codes (dot, i8mm)|backends25checked_conv_signed_bytes|sdot"
+  "trunk bytes (i8mm)|mmla18checked_conv_bytes|usmmla"
+  "U-Net signed narrow codes (dot)|backends25checked_conv_signed_bytes|sdot"
+  "U-Net signed narrow codes (i8mm)|mmla25checked_conv_signed_bytes|smmla"
   "FiLM rows (dot, i8mm)|aarch646matvec12matvec_codes|sdot"
   "U-Net 15-bit codes (all)|aarch644int83dot10conv_codes|smull"
   "trunk digits (neon)|aarch644int84neon4conv|smull"
@@ -27,7 +28,7 @@ printf "| loop | instructions | %s |\n|---|---:|---:|---:|---:|\n" "neoverse-n1 
 for entry in "${loops[@]}"; do
   IFS='|' read -r name function mnemonic <<<"$entry"
   python3 benches/arm/innermost_loop.py "$work/all.s" "$function" "$mnemonic" >"$work/loop.s"
-  counts=$(grep -oE "^(sdot|usdot|smull2?|fmla)\b" "$work/loop.s" | sort | uniq -c | awk '{ printf "%s%d %s", sep, $1, $2; sep=", " }')
+  counts=$(grep -oE "^(sdot|usdot|usmmla|smmla|smull2?|fmla)\b" "$work/loop.s" | sort | uniq -c | awk '{ printf "%s%d %s", sep, $1, $2; sep=", " }')
   cycles=()
   for cpu in neoverse-n1 cortex-a76 neoverse-v2; do
     cycles+=("$(llvm-mca-19 -mtriple=aarch64 -mcpu=$cpu -mattr=+dotprod,+i8mm -iterations=2000 "$work/loop.s" |
