@@ -2850,3 +2850,40 @@ fn calls_cut_over_workers_give_the_whole_calls_bits_on_every_backend() {
         }
     }
 }
+
+/// The byte convolutions take at most `MAX_DIGIT_CHANNELS` inputs on every backend, as the
+/// digit ones do: the SIMD tiles read a padded pixel's zeros from a row that long, so a
+/// wider padded input would read past it. Such a call panics (the weights loader never
+/// makes one: `int8_fits`) instead of summing whatever lies beyond.
+#[test]
+fn byte_convolutions_refuse_more_inputs_than_the_zero_row_holds() {
+    use scdp_engine::kernels::MAX_DIGIT_CHANNELS;
+    let inputs = 2 * MAX_DIGIT_CHANNELS + 16;
+    let shape = ConvShape::square((2, 2, inputs), 4, 3, 1, 1);
+    let bytes = vec![1u8; shape.input_len()];
+    let weight = vec![1i8; shape.int8_weight_len()];
+    let (scales, bias) = (vec![1.0f32; 4], vec![0.0f32; 4]);
+    for (name, kernels) in backends() {
+        let call = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            let input = ByteRows {
+                bytes: &bytes,
+                scale: 1.0,
+            };
+            let mut output = vec![0.0f32; shape.output_len()];
+            let overwrite = Accumulate::Overwrite;
+            kernels.conv_int8_bytes(
+                &shape,
+                &input,
+                &weight,
+                &scales,
+                &bias,
+                &mut output,
+                overwrite,
+            );
+        }));
+        assert!(
+            call.is_err(),
+            "{name} ran a byte convolution over {inputs} inputs"
+        );
+    }
+}

@@ -344,10 +344,11 @@ pub trait Kernels: Sync {
     /// the bytes split into digits (`byte = 128 (byte >> 7) + (byte & 127)`). This default
     /// does that split a few pixels at a time for a pointwise convolution and runs the
     /// scalar reference otherwise; VNNI's and the AMX tiles' byte products take whole bytes,
-    /// half the products.
+    /// half the products. Up to [`MAX_DIGIT_CHANNELS`] inputs, as `conv_int8`: the SIMD
+    /// tiles read the padding's zeros from a row that long.
     ///
     /// # Panics
-    /// If a slice is shorter than the contract makes it.
+    /// If a slice is shorter than the contract makes it, or the shape has more inputs.
     #[allow(clippy::too_many_arguments)]
     fn conv_int8_bytes(
         &self,
@@ -417,10 +418,11 @@ pub trait Kernels: Sync {
     /// quads as [`CodeRows`]' are): the same exact sums (over at most [`MAX_BYTE_TERMS`]
     /// products), rounding and scaling, so the same bits as `conv_int8_codes` on the same
     /// codes widened to i16. This default runs the scalar reference; VNNI multiplies whole
-    /// bytes, AVX2 widens them to its 16-bit products.
+    /// bytes, AVX2 widens them to its 16-bit products. Up to [`MAX_DIGIT_CHANNELS`] inputs,
+    /// as `conv_int8_codes`.
     ///
     /// # Panics
-    /// If a slice is shorter than the contract makes it.
+    /// If a slice is shorter than the contract makes it, or the shape has more inputs.
     #[allow(clippy::too_many_arguments)]
     fn conv_int8_signed_bytes(
         &self,

@@ -176,7 +176,7 @@ pub(crate) fn assert_byte_lengths(
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
     output_len: usize,
 ) {
-    assert!(shape.in_channels >= 1);
+    assert!(shape.in_channels >= 1 && shape.in_channels <= MAX_DIGIT_CHANNELS);
     assert!(shape.kernel_height * shape.kernel_width * shape.in_channels <= MAX_BYTE_TERMS);
     assert_eq!(input.bytes.len(), shape.input_len());
     assert_eq!(weight.len(), shape.int8_weight_len());
@@ -212,6 +212,7 @@ pub(crate) fn assert_signed_byte_lengths(
     output_len: usize,
 ) {
     let rows = shape.in_height * shape.in_width;
+    assert!(shape.in_channels <= MAX_DIGIT_CHANNELS);
     assert!(shape.kernel_height * shape.kernel_width * shape.in_channels <= MAX_BYTE_TERMS);
     assert_eq!(
         input.codes.len(),
