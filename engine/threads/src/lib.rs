@@ -3,6 +3,11 @@
 //! during an inference, far less than waking a parked thread takes, so the threads spin
 //! on the next call for a while ([`SPIN`]) and park only when none comes: between
 //! inferences. A call creates no thread and allocates nothing.
+//!
+//! The caller waits only for the pieces a thread has claimed, never for a thread to show
+//! up: a thread the OS has taken off its core (other programs on the computer, more
+//! threads than cores) leaves its share to the others instead of stalling every call
+//! until it is scheduled again.
 
 use std::cell::UnsafeCell;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -20,15 +25,22 @@ const SPIN: Duration = Duration::from_micros(500);
 type Job = (*const (dyn Fn(usize) + Sync), usize);
 
 struct Shared {
-    /// Bumped by each call; a thread runs the job of every generation it sees.
+    /// Bumped by each call: wakes the threads.
     generation: AtomicUsize,
     job: UnsafeCell<Option<Job>>,
-    /// Threads (not counting the caller) that have not finished the current call.
-    running: AtomicUsize,
+    /// Whether the job may be entered: set once a call has written it, cleared when the
+    /// call returns.
+    open: AtomicBool,
+    /// Threads (not counting the caller) inside a call: from before they look at `open`
+    /// until they have stopped taking pieces. The job is not rewritten while one is.
+    entered: AtomicUsize,
     /// The next piece of the current call nobody has taken: each worker, the caller
     /// included, takes pieces until none is left, so a worker that starts late or runs
-    /// slower (its inputs in the other core's cache) takes fewer.
+    /// slower (its inputs in the other core's cache) takes fewer, and one that does not
+    /// start at all takes none.
     next: AtomicUsize,
+    /// Pieces of the current call that have returned.
+    done: AtomicUsize,
     panicked: AtomicBool,
     stop: AtomicBool,
     /// Workers, the caller included.
@@ -36,9 +48,11 @@ struct Shared {
 }
 
 // SAFETY: `job` is written only by the caller of `run`, holding `ThreadPool::calls`, while
-// no thread reads it (before the generation's release store that publishes it, and after
-// every thread has reported with a release decrement of `running`); the threads read it
-// only between those two points. The work it points to is `Sync`.
+// no thread reads it: with `entered` at zero and `open` false. A thread reads it only
+// after counting itself in `entered` and then finding `open` set (both sequentially
+// consistent, against the caller's check of `entered` and its store to `open`), and
+// calls the work only for a piece it claimed, while the caller waits for that piece.
+// The work it points to is `Sync`.
 unsafe impl Sync for Shared {}
 // SAFETY: as above; the raw pointer is only the erased `&(dyn Fn(usize) + Sync)`.
 unsafe impl Send for Shared {}
@@ -70,8 +84,10 @@ impl ThreadPool {
         let shared = Arc::new(Shared {
             generation: AtomicUsize::new(0),
             job: UnsafeCell::new(None),
-            running: AtomicUsize::new(0),
+            open: AtomicBool::new(false),
+            entered: AtomicUsize::new(0),
             next: AtomicUsize::new(0),
+            done: AtomicUsize::new(0),
             panicked: AtomicBool::new(false),
             stop: AtomicBool::new(false),
             count,
@@ -98,14 +114,20 @@ impl ThreadPool {
     }
 }
 
-/// Runs pieces of the current call until none is left.
+/// Runs pieces of the current call until none is left; a panic is recorded for the
+/// caller, and its piece still counts as done.
 fn take_pieces(shared: &Shared, pieces: usize, work: &(dyn Fn(usize) + Sync)) {
     loop {
         let piece = shared.next.fetch_add(1, Ordering::Relaxed);
         if piece >= pieces {
             return;
         }
-        work(piece);
+        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| work(piece)));
+        if result.is_err() {
+            shared.panicked.store(true, Ordering::Relaxed);
+        }
+        // Publishes the piece's writes to the caller, which waits for the count.
+        shared.done.fetch_add(1, Ordering::Release);
     }
 }
 
@@ -133,19 +155,17 @@ fn work_loop(shared: &Shared) {
                 thread::park();
             }
         }
-        // SAFETY: the generation's acquire load above saw the release store that followed
-        // writing the job, and the caller does not touch it again before this thread
-        // decrements `running` below.
-        let (work, pieces) = unsafe { (*shared.job.get()).expect("a published call") };
-        // SAFETY: the caller of `run` keeps the work alive until `running` reaches zero.
-        let work = unsafe { &*work };
-        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            take_pieces(shared, pieces, work)
-        }));
-        if result.is_err() {
-            shared.panicked.store(true, Ordering::Relaxed);
+        shared.entered.fetch_add(1, Ordering::SeqCst);
+        if shared.open.load(Ordering::SeqCst) {
+            // SAFETY: `open` was set after the job was written, and the job is not
+            // rewritten before this thread leaves `entered` (see `Shared`).
+            if let Some((work, pieces)) = unsafe { *shared.job.get() } {
+                // SAFETY: the work is called only for a piece claimed before the last one
+                // was done, and its call waits for that piece, so the work is alive.
+                take_pieces(shared, pieces, unsafe { &*work });
+            }
         }
-        shared.running.fetch_sub(1, Ordering::Release);
+        shared.entered.fetch_sub(1, Ordering::Release);
     }
 }
 
@@ -183,44 +203,47 @@ impl Workers for ThreadPool {
             .calls
             .lock()
             .unwrap_or_else(|poisoned| poisoned.into_inner());
-        // SAFETY: erases the work's lifetime for the threads; this function does not return
-        // (nor unwind) before every thread has finished with it (`running` back to zero),
-        // and clears the job before returning.
+        // Threads still inside the previous call found it closed or without pieces and
+        // are on their way out (unless taken off their core right there).
+        wait_for(|| shared.entered.load(Ordering::SeqCst) == 0);
+        // SAFETY: erases the work's lifetime for the threads; they call it only for pieces
+        // claimed before this call returns, and it does not return (nor unwind: the pieces'
+        // panics are caught) before every piece is done.
         let erased: *const (dyn Fn(usize) + Sync + 'static) = unsafe {
             core::mem::transmute::<*const (dyn Fn(usize) + Sync + '_), _>(work as *const _)
         };
-        // SAFETY: no thread reads the job now: every one has reported the previous call.
+        // SAFETY: no thread reads the job now: none is inside a call (checked above), and
+        // one that enters from here on finds `open` false until the store below.
         unsafe { *shared.job.get() = Some((erased, pieces)) };
-        shared.running.store(self.threads.len(), Ordering::Relaxed);
         shared.next.store(0, Ordering::Relaxed);
+        shared.done.store(0, Ordering::Relaxed);
         shared.panicked.store(false, Ordering::Relaxed);
+        shared.open.store(true, Ordering::SeqCst);
         shared.generation.fetch_add(1, Ordering::Release);
         for thread in &self.threads {
             thread.thread().unpark();
         }
-        let mine = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            take_pieces(shared, pieces, work)
-        }));
-        let mut spins = 0u32;
-        while shared.running.load(Ordering::Acquire) != 0 {
-            // A thread taken off its core (more threads than cores) finishes only once the
-            // OS runs it again: past a short spin, offer it this core.
-            spins = spins.saturating_add(1);
-            if spins < 4096 {
-                core::hint::spin_loop();
-            } else {
-                thread::yield_now();
-            }
-        }
-        // SAFETY: every thread has reported (the acquire load above); none reads it again
-        // before the next generation.
-        unsafe { *shared.job.get() = None };
-        if let Err(panic) = mine {
-            std::panic::resume_unwind(panic);
-        }
+        take_pieces(shared, pieces, work);
+        // Only pieces another thread claimed and is running are left to wait for.
+        wait_for(|| shared.done.load(Ordering::Acquire) == pieces);
+        shared.open.store(false, Ordering::SeqCst);
         assert!(
             !shared.panicked.load(Ordering::Relaxed),
-            "a worker thread panicked"
+            "a piece of the work panicked"
         );
+    }
+}
+
+/// Spins until `ready`; past a short spin, offers the core to the thread being waited for
+/// (taken off its core mid-piece: more threads than cores).
+fn wait_for(ready: impl Fn() -> bool) {
+    let mut spins = 0u32;
+    while !ready() {
+        spins = spins.saturating_add(1);
+        if spins < 4096 {
+            core::hint::spin_loop();
+        } else {
+            thread::yield_now();
+        }
     }
 }
