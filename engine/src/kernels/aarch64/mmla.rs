@@ -28,7 +28,6 @@ use core::arch::aarch64::{
 use super::int8_lanes::DotQ;
 use crate::kernels::scalar::{
     CodeSums, assert_byte_lengths, assert_signed_byte_lengths, conv_int8_bytes, conv_int8_pixels,
-    conv_int8_signed_bytes,
 };
 use crate::kernels::simd::int8::{
     Int8Lanes, PREFETCH_QUADS, PixelTile, SignedByteLanes, ZERO_ROW, store,
@@ -438,11 +437,6 @@ unsafe fn conv<I: MatrixInput>(
     }
 }
 
-/// Whether a row of `row_stride` bytes fits the zero row the padding reads.
-fn fits_zero_row(row_stride: usize) -> bool {
-    row_stride <= core::mem::size_of_val(&ZERO_ROW)
-}
-
 /// `Kernels::conv_int8_bytes` on `usmmla`, the lengths checked; inputs not in whole quads on
 /// the scalar reference.
 ///
@@ -457,12 +451,12 @@ pub(crate) unsafe fn checked_conv_bytes(
     accumulate: Accumulate,
 ) {
     assert_byte_lengths(shape, input, parameters, output.len());
-    let in_channels = shape.in_channels;
-    if !in_channels.is_multiple_of(QUAD) || !fits_zero_row(in_channels) {
+    if !shape.in_channels.is_multiple_of(QUAD) {
         return conv_int8_bytes(shape, input, parameters, output, accumulate);
     }
-    // SAFETY: I8MM (this function's contract); the lengths were asserted and the rows
-    // checked just above.
+    // SAFETY: I8MM (this function's contract); the lengths were asserted (at most
+    // `MAX_DIGIT_CHANNELS` inputs: rows no longer than the zero row) and the quads checked
+    // just above.
     unsafe { conv(shape, input, parameters, output, accumulate) }
 }
 
@@ -479,10 +473,8 @@ pub(crate) unsafe fn checked_conv_signed_bytes(
     accumulate: Accumulate,
 ) {
     assert_signed_byte_lengths(shape, input, parameters, output.len());
-    if !fits_zero_row(CodeRows::row_stride(shape.in_channels)) {
-        return conv_int8_signed_bytes(shape, input, parameters, output, accumulate);
-    }
-    // SAFETY: I8MM (this function's contract); the lengths were asserted and the rows
-    // checked just above.
+    // SAFETY: I8MM (this function's contract); the lengths were asserted (at most
+    // `MAX_DIGIT_CHANNELS` inputs, padded to whole quads: rows no longer than the zero row)
+    // just above.
     unsafe { conv(shape, input, parameters, output, accumulate) }
 }
