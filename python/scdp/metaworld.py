@@ -164,7 +164,10 @@ def workspace_checkpoint(cfg: dict, model, ema, optimizer, scheduler, step: int,
 
 
 def train(model_dir: Path, total_steps: int, batch_size: int, checkpoint_every: int, threads: int,
-          precision: str) -> None:
+          precision: str, prefix_rows: int = 0, init: Path | None = None, warmup: int = 500) -> None:
+    """Trains from scratch, or with `init` from a shipped checkpoint's EMA weights (its
+    normalizer included); with `prefix_rows`, half the windows hold a committed prefix of
+    up to that many rows (`SCDPPolicy.loss`)."""
     import torch
 
     from .torch_policy import EMAModel, SCDPPolicy
@@ -177,11 +180,14 @@ def train(model_dir: Path, total_steps: int, batch_size: int, checkpoint_every: 
     camera_t = torch.as_tensor(demos["camera_t"]).expand(batch_size, 4, 4)
     torch.manual_seed(0)
     model = SCDPPolicy(cfg)
-    model.normalizer.fit("action", demos["action"])
-    model.normalizer.fit("agent_pos", demos["state"])
+    if init is None:
+        model.normalizer.fit("action", demos["action"])
+        model.normalizer.fit("agent_pos", demos["state"])
+    else:
+        weights = torch.load(init, weights_only=False)["state_dicts"]["ema_model"]
+        model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in weights.items()})
     ema = EMAModel(model)
     optimizer = torch.optim.AdamW(model.parameters(), lr=1e-4, betas=(0.95, 0.999), eps=1e-8, weight_decay=1e-6)
-    warmup = 500
 
     def lr_factor(step):
         # diffusers' get_cosine_schedule_with_warmup
@@ -215,7 +221,7 @@ def train(model_dir: Path, total_steps: int, batch_size: int, checkpoint_every: 
         images, state, actions = sequences.batch(rng, batch_size)
         images, state, actions = (torch.as_tensor(x) for x in (images, state, actions))
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=use_bf16):
-            loss = model.loss(images, state, actions, camera_k, camera_t)
+            loss = model.loss(images, state, actions, camera_k, camera_t, prefix_rows)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -853,6 +859,11 @@ def main(argv=None) -> None:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--precision", choices=("bf16", "f32"), default="bf16",
                    help="autocast precision of the forward pass (weights and optimizer stay f32)")
+    p.add_argument("--prefix-rows", type=int, default=0, metavar="K",
+                   help="hold a committed prefix of 1..K rows in half the windows (inpainting training)")
+    p.add_argument("--init", type=Path, metavar="CHECKPOINT",
+                   help="start from this checkpoint's EMA weights (fine-tuning) instead of from scratch")
+    p.add_argument("--warmup", type=int, default=500, help="learning-rate warm-up steps")
     p = commands.add_parser("train-cost", help="seconds per training batch, f32 and bf16 autocast")
     p.add_argument("--model-dir", type=Path, required=True)
     p.add_argument("--batches", type=int, default=5)
@@ -905,7 +916,8 @@ def main(argv=None) -> None:
     elif args.command == "calibration":
         write_calibration(args.model_dir, args.count)
     elif args.command == "train":
-        train(args.model_dir, args.steps, args.batch_size, args.checkpoint_every, args.threads, args.precision)
+        train(args.model_dir, args.steps, args.batch_size, args.checkpoint_every, args.threads, args.precision,
+              args.prefix_rows, args.init, args.warmup)
     elif args.command == "train-cost":
         training_cost(args.model_dir, args.batches, args.batch_size, args.threads)
     elif args.command == "eval":

@@ -296,18 +296,33 @@ class SCDPPolicy(nn.Module):
 
     # ---- training
 
-    def loss(self, images, state, actions, camera_k, camera_t) -> torch.Tensor:
+    def loss(self, images, state, actions, camera_k, camera_t, prefix_rows: int = 0) -> torch.Tensor:
         """Epsilon-prediction MSE of one batch: images uint8 [B, To, H, W, 3], state
-        [B, To, S], actions [B, horizon, A] (raw units), camera [B, 3, 3] / [B, 4, 4]."""
+        [B, To, S], actions [B, horizon, A] (raw units), camera [B, 3, 3] / [B, 4, 4].
+
+        With `prefix_rows` K > 0, half of the windows (drawn per window) hold a committed
+        prefix of k rows, k uniform in 1..K, from row To-1 on: those rows are the clean
+        actions in the noisy sample, as `predict`'s "replace" rule holds them at every step
+        (Diffusion Policy's inpainting, its `condition_mask`), and are left out of the loss."""
         target = self.normalizer.normalize("action", actions)
         noise = torch.randn_like(target)
         timesteps = torch.randint(0, self.cfg["num_train_timesteps"], (target.shape[0],), device=target.device)
         abar = self.alphas_cumprod[timesteps][:, None, None]
         noisy = abar.sqrt() * target + (1 - abar).sqrt() * noise
+        free = None
+        if prefix_rows:
+            batch, horizon = target.shape[:2]
+            k = torch.randint(1, prefix_rows + 1, (batch,)) * (torch.rand(batch) < 0.5)
+            row = torch.arange(horizon)[None, :] - (self.cfg["n_obs_steps"] - 1)
+            held = ((row >= 0) & (row < k[:, None]))[:, :, None].expand_as(target)
+            noisy = torch.where(held, target, noisy)
+            free = ~held
         features = self.features(images)
         cond, _, _ = self.global_condition(features, noisy, state, camera_k, camera_t)
         eps = self.model(noisy, timesteps, cond)
-        return F.mse_loss(eps.float(), noise)
+        if free is None:
+            return F.mse_loss(eps.float(), noise)
+        return F.mse_loss(eps.float()[free], noise[free])
 
     # ---- inference (DDIM, eta 0, "leading" timesteps, set_alpha_to_one)
 
