@@ -541,6 +541,7 @@ def evaluate(task, model_dir, runtime_name, episodes, first_seed, threads, backe
     result = {
         "task": task, "runtime": runtime_name, "episodes": episodes, "successes": successes,
         "success_rate": successes / episodes, "success_rate_95": [round(low, 4), round(high, 4)],
+        "policy": model_dir.resolve().name,
         "first_seed": first_seed, "mean_steps": float(np.mean(steps_taken)),
         "infer_ms_p50": float(np.median(latencies)),
         "backend": getattr(getattr(runtime, "policy", None), "backend", "torch"),
@@ -720,13 +721,20 @@ def handover_rule(result) -> str:
     return f"prefix {result['prefix']}{plan}"
 
 
+def policy_label(result) -> str:
+    """The task, and the policy's folder where it is not the task's shipped one
+    (`metaworld-TASK`): results without a folder are the shipped policy's."""
+    folder = result.get("policy", f"metaworld-{result['task']}")
+    return result["task"] if folder == f"metaworld-{result['task']}" else f"{result['task']} ({folder})"
+
+
 def pooled_results(results):
     """`eval` results of one setting (task, latency, hand-over rule) on adjacent seed ranges
     merged into one: successes, failed seeds (when every part lists them), the Wilson
     interval, and the seam means weighted by their counts (hand-overs; steps inside the
     chunks, when every part has them). 95th percentiles do not pool and are left out."""
     def setting(r):
-        return (r["task"], r["latency_steps"], handover_rule(r))
+        return (policy_label(r), r["latency_steps"], handover_rule(r))
 
     pooled = []
     for r in sorted(results, key=lambda r: (setting(r), r["first_seed"])):
@@ -774,6 +782,11 @@ def latency_table(paths) -> str:
         for line in Path(path).read_text().splitlines():
             if line.strip():
                 results.append(json.loads(line))
+    return latency_table_of(results)
+
+
+def latency_table_of(results) -> str:
+    """`latency_table` of results already read."""
     parts, results = results, pooled_results(results)
 
     def rank(r):
@@ -787,14 +800,14 @@ def latency_table(paths) -> str:
     def seeds(r):
         return f"{r['first_seed']}-{r['first_seed'] + r['episodes'] - 1}"
 
-    results.sort(key=lambda r: (r["task"], r["latency_steps"], r["first_seed"], -r["episodes"], rank(r)))
+    results.sort(key=lambda r: (policy_label(r), r["latency_steps"], r["first_seed"], -r["episodes"], rank(r)))
     lines = ["| task | D | seeds | hand-over | success (95%) | minus drop (95%) | seam jump mean | "
              "jump / drop's | jump / step inside a chunk | largest early step mean | mean steps |",
              "|---|---:|---|---|---|---|---:|---:|---:|---:|---:|"]
     for r in results:
         # Dropping on the same seeds: pooled, or one of the parts when only these seeds ran.
-        drop = next((d for d in results + parts if (d["task"], d["latency_steps"], seeds(d)) ==
-                     (r["task"], r["latency_steps"], seeds(r)) and handover_rule(d) == "drop"), None)
+        drop = next((d for d in results + parts if (policy_label(d), d["latency_steps"], seeds(d)) ==
+                     (policy_label(r), r["latency_steps"], seeds(r)) and handover_rule(d) == "drop"), None)
         low, high = r["success_rate_95"]
         versus, ratio = "", ""
         if drop is not None and drop is not r:
@@ -808,7 +821,7 @@ def latency_table(paths) -> str:
         seams = r["seams"]
         step = f"{seams['jump_mean'] / seams['step_mean']:.2f}x" if "step_mean" in seams else ""
         lines.append(
-            f"| {r['task']} | {r['latency_steps']} | {seeds(r)} | {handover_rule(r)} | "
+            f"| {policy_label(r)} | {r['latency_steps']} | {seeds(r)} | {handover_rule(r)} | "
             f"{r['successes']}/{r['episodes']} ({low:.3f} - {high:.3f}) | {versus} | {seams['jump_mean']:.3f} | "
             f"{ratio} | {step} | {seams['early_step_max_mean']:.3f} | {r['mean_steps']:.1f} |")
     return "\n".join(lines)

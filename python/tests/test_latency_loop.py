@@ -168,6 +168,22 @@ def test_adjacent_seed_ranges_of_one_setting_pool():
     assert parts[0]["successes"] == 90 and parts[0]["seams"]["handovers"] == 100
 
 
+def test_another_policy_of_a_task_is_its_own_setting():
+    shipped = _result(1000, 90, [1003] * 10, 0.1, 100)
+    retrained = {**_result(1100, 60, [1105] * 40, 0.4, 100), "policy": "prefix-trained"}
+    drop = _result(1000, 50, [1001] * 50, 0.2, 100, rule=(None, False, None))
+    # Adjacent seeds, same rule: pooled only if the policy is the same.
+    assert len(metaworld.pooled_results([shipped, retrained])) == 2
+    assert metaworld.policy_label({**shipped, "policy": "metaworld-t"}) == "t"
+    retrained = {**retrained, "first_seed": 1000}
+    table = metaworld.latency_table_of([shipped, retrained, drop])
+    rows = [line for line in table.splitlines() if "prefix replace" in line]
+    assert rows[0].startswith("| t | 4 | 1000-1099 |") and "paired" in rows[0]
+    # The same seeds, but no dropping run of the retrained policy: it is not compared with
+    # the shipped policy's.
+    assert rows[1].startswith("| t (prefix-trained) | 4 | 1000-1099 |") and "paired" not in rows[1]
+
+
 def test_the_documented_latency_table_is_the_shipped_results():
     root = Path(__file__).resolve().parents[2]
     table = metaworld.latency_table(sorted(root.glob("tests/fixtures/trained/*/latency.jsonl")))
