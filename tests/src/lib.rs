@@ -243,8 +243,39 @@ pub const CALIBRATION_SEED: u64 = 7;
 /// [`CALIBRATION_SCENES`] synthetic scenes seen through `fixture`'s camera (a deployment
 /// constant: the camera the policy runs with is the one it is calibrated with); the same
 /// rounding written twice, with one weight plane and with the trunk refined.
+///
+/// With `SCDP_CALIBRATED_FILES` naming a folder, the two files are read from it where an
+/// earlier run wrote them (named by the case's weights digest), else converted and written
+/// there: under emulation, where GPTQ's calibration runs for hours, the fidelity test then
+/// runs the engine on the files a native run converted (docs/ARM.md).
 #[cfg(feature = "gptq")]
 pub fn calibrated_int8_weights_files(fixture: &Fixture) -> Result<CalibratedFiles> {
+    let Some(folder) = std::env::var_os("SCDP_CALIBRATED_FILES") else {
+        return convert_calibrated(fixture);
+    };
+    let stem = PathBuf::from(folder).join(&fixture.weights_sha256[..16]);
+    let [plain, refined] =
+        ["plain", "refined-trunk"].map(|name| stem.with_extension(format!("{name}.scdp")));
+    if plain.exists() && refined.exists() {
+        let read = |path: &Path| -> Result<AlignedBytes> {
+            let bytes =
+                std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+            Ok(weights_tool::writer::aligned_copy(&bytes))
+        };
+        return Ok(CalibratedFiles {
+            plain: read(&plain)?,
+            refined_trunk: read(&refined)?,
+        });
+    }
+    let files = convert_calibrated(fixture)?;
+    std::fs::create_dir_all(stem.parent().unwrap_or(Path::new(".")))?;
+    std::fs::write(&plain, files.plain.as_slice())?;
+    std::fs::write(&refined, files.refined_trunk.as_slice())?;
+    Ok(files)
+}
+
+#[cfg(feature = "gptq")]
+fn convert_calibrated(fixture: &Fixture) -> Result<CalibratedFiles> {
     use weights_tool::lowering::{self, Rounding};
     let config = &fixture.config;
     let state = weights_tool::synth::synth_state_dict(config, fixture.seed);
