@@ -69,21 +69,18 @@ pub(crate) mod int8 {
     pub(crate) use super::int8_lanes::DotQ as SignedBytes;
 }
 
-// Hosted builds ask the OS; freestanding ones read the ID registers (below).
-#[cfg(feature = "std")]
-use std::arch::is_aarch64_feature_detected as os_reports;
-
-/// The dot-product extension (`sdot`, FEAT_DotProd) is present: asked of the OS.
+/// The dot-product extension (`sdot`, FEAT_DotProd) is present: asked of the OS (hosted
+/// builds; freestanding ones read the ID registers, below).
 #[cfg(not(freestanding))]
 pub fn has_dotprod() -> bool {
-    os_reports!("dotprod")
+    is_aarch64_feature_detected!("dotprod")
 }
 
 /// The int8 matrix multiply extension (`usdot`, `smmla`, FEAT_I8MM) is present, and the
 /// dot product: asked of the OS.
 #[cfg(not(freestanding))]
 pub fn has_i8mm() -> bool {
-    os_reports!("i8mm") && has_dotprod()
+    is_aarch64_feature_detected!("i8mm") && has_dotprod()
 }
 
 /// The dot-product extension (`sdot`, FEAT_DotProd) is present: ID_AA64ISAR0_EL1.DP, bits
