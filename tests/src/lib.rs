@@ -253,7 +253,8 @@ pub fn calibrated_int8_weights_files(fixture: &Fixture) -> Result<CalibratedFile
     let Some(folder) = std::env::var_os("SCDP_CALIBRATED_FILES") else {
         return convert_calibrated(fixture);
     };
-    let stem = PathBuf::from(folder).join(&fixture.weights_sha256[..16]);
+    let folder = PathBuf::from(folder);
+    let stem = folder.join(&fixture.weights_sha256[..16]);
     let [plain, refined] =
         ["plain", "refined-trunk"].map(|name| stem.with_extension(format!("{name}.scdp")));
     if plain.exists() && refined.exists() {
@@ -268,7 +269,7 @@ pub fn calibrated_int8_weights_files(fixture: &Fixture) -> Result<CalibratedFile
         });
     }
     let files = convert_calibrated(fixture)?;
-    std::fs::create_dir_all(stem.parent().unwrap_or(Path::new(".")))?;
+    std::fs::create_dir_all(&folder)?;
     std::fs::write(&plain, files.plain.as_slice())?;
     std::fs::write(&refined, files.refined_trunk.as_slice())?;
     Ok(files)
