@@ -135,7 +135,7 @@ class Sequences:
 
 
 def workspace_checkpoint(cfg: dict, model, ema, optimizer, scheduler, step: int, total_steps: int,
-                         rng_state, half: bool) -> dict:
+                         rng_state, half: bool, warmup: int = 500) -> dict:
     """Diffusion Policy's BaseWorkspace.save_checkpoint layout: cfg (OmegaConf), state_dicts,
     pickles. With `half`, only the EMA weights, as float16: what ships."""
     from omegaconf import OmegaConf
@@ -145,7 +145,7 @@ def workspace_checkpoint(cfg: dict, model, ema, optimizer, scheduler, step: int,
         "task_name": cfg.get("task", ""),
         "horizon": cfg["horizon"], "n_obs_steps": cfg["n_obs_steps"], "n_action_steps": cfg["n_action_steps"],
         "policy": {k: v for k, v in cfg.items() if k != "task"},
-        "training": {"num_steps": total_steps, "lr_scheduler": "cosine", "lr_warmup_steps": 500,
+        "training": {"num_steps": total_steps, "lr_scheduler": "cosine", "lr_warmup_steps": warmup,
                      "use_ema": True, "batch_size": 32},
         "optimizer": {"_target_": "torch.optim.AdamW", "lr": 1.0e-4, "betas": [0.95, 0.999],
                       "eps": 1.0e-8, "weight_decay": 1.0e-6},
@@ -235,13 +235,15 @@ def train(model_dir: Path, total_steps: int, batch_size: int, checkpoint_every: 
             log.flush()
         if step % checkpoint_every == 0 or step == total_steps:
             payload = workspace_checkpoint(cfg, model, ema, optimizer, scheduler, step, total_steps,
-                                           rng.bit_generator.state, half=False)
+                                           rng.bit_generator.state, half=False, warmup=warmup)
             torch.save(payload, work / "latest.tmp")
             (work / "latest.tmp").replace(latest)
-            shipped = workspace_checkpoint(cfg, model, ema, optimizer, scheduler, step, total_steps, None, half=True)
+            shipped = workspace_checkpoint(cfg, model, ema, optimizer, scheduler, step, total_steps, None,
+                                           half=True, warmup=warmup)
             torch.save(shipped, work / f"step-{step:06d}.ckpt")
             print(f"step {step}: loss {float(loss.detach()):.4f}", file=sys.stderr)
-    final = workspace_checkpoint(cfg, model, ema, optimizer, scheduler, step, total_steps, None, half=True)
+    final = workspace_checkpoint(cfg, model, ema, optimizer, scheduler, step, total_steps, None, half=True,
+                                 warmup=warmup)
     torch.save(final, model_dir / CHECKPOINT)
 
 
