@@ -29,9 +29,6 @@
 #![no_std]
 #![forbid(unsafe_op_in_unsafe_fn)]
 
-// With `std`, its macros as well: the aarch64 backends ask the OS for the CPU's features
-// (`is_aarch64_feature_detected!`) without naming the standard library outside this gate.
-#[macro_use]
 #[cfg(feature = "std")]
 extern crate std;
 

@@ -69,30 +69,30 @@ pub(crate) mod int8 {
     pub(crate) use super::int8_lanes::DotQ as SignedBytes;
 }
 
-/// The dot-product extension (`sdot`, FEAT_DotProd) is present: asked of the OS (hosted
-/// builds; freestanding ones read the ID registers, below).
-#[cfg(not(freestanding))]
+/// The dot-product extension (`sdot`, FEAT_DotProd) is present: asked of the OS (builds
+/// without std read the ID registers, below).
+#[cfg(feature = "std")]
 pub fn has_dotprod() -> bool {
-    is_aarch64_feature_detected!("dotprod")
+    std::arch::is_aarch64_feature_detected!("dotprod")
 }
 
 /// The int8 matrix multiply extension (`usdot`, `smmla`, FEAT_I8MM) is present, and the
 /// dot product: asked of the OS.
-#[cfg(not(freestanding))]
+#[cfg(feature = "std")]
 pub fn has_i8mm() -> bool {
-    is_aarch64_feature_detected!("i8mm") && has_dotprod()
+    std::arch::is_aarch64_feature_detected!("i8mm") && has_dotprod()
 }
 
 /// The dot-product extension (`sdot`, FEAT_DotProd) is present: ID_AA64ISAR0_EL1.DP, bits
 /// 47:44, is 1 or more.
-#[cfg(freestanding)]
+#[cfg(not(feature = "std"))]
 pub fn has_dotprod() -> bool {
     (id_register::<0>() >> 44) & 0xf >= 1
 }
 
 /// The int8 matrix multiply extension (`usdot`, `smmla`, FEAT_I8MM) is present, and the
 /// dot product: ID_AA64ISAR1_EL1.I8MM, bits 55:52, is 1 or more.
-#[cfg(freestanding)]
+#[cfg(not(feature = "std"))]
 pub fn has_i8mm() -> bool {
     (id_register::<1>() >> 52) & 0xf >= 1 && has_dotprod()
 }
@@ -100,7 +100,7 @@ pub fn has_i8mm() -> bool {
 /// ID_AA64ISAR0_EL1 (`N = 0`) or ID_AA64ISAR1_EL1 (`N = 1`), read directly where there is
 /// no OS to ask: allowed at EL1 (firmware), and emulated for EL0 by Linux (since 4.11) and
 /// by qemu's user mode.
-#[cfg(freestanding)]
+#[cfg(not(feature = "std"))]
 fn id_register<const N: usize>() -> u64 {
     let value: u64;
     // SAFETY: reading an ID register has no side effect; where EL0 may not read it the OS
