@@ -6,7 +6,7 @@
 
 use crate::config::{BackboneNorm, ModelConfig, UNET_LEVELS};
 use crate::error::Error as LoadError;
-use crate::shape::int8_stored_elements;
+use crate::shape::{int8_pair_stored_elements, int8_stored_elements};
 
 /// First eight bytes of every weights file.
 pub const MAGIC: [u8; 8] = *b"SCDPWTS\0";
@@ -46,6 +46,13 @@ pub enum DType {
     I8Refined = 3,
     /// [`DType::I8Narrow`]'s input codes with [`DType::I8Refined`]'s two weight planes.
     I8NarrowRefined = 4,
+    /// The values of the 8-bit weight two entries before (its scales between), again in the
+    /// pair layout (eight inputs a group, [`crate::shape::int8_pair_index`]), for the
+    /// backends whose matrix multiplies take 2 x 8 operands. Optional; named
+    /// `NAME.pairs`, with the weight's dims.
+    I8Pairs = 5,
+    /// [`DType::I8Pairs`] of a refined weight: both planes, each in the pair layout.
+    I8RefinedPairs = 6,
 }
 
 impl DType {
@@ -56,6 +63,8 @@ impl DType {
             2 => Some(DType::I8Narrow),
             3 => Some(DType::I8Refined),
             4 => Some(DType::I8NarrowRefined),
+            5 => Some(DType::I8Pairs),
+            6 => Some(DType::I8RefinedPairs),
             _ => None,
         }
     }
@@ -63,14 +72,22 @@ impl DType {
     pub const fn size(self) -> usize {
         match self {
             DType::F32 => 4,
-            DType::I8 | DType::I8Narrow => 1,
-            DType::I8Refined | DType::I8NarrowRefined => 2,
+            DType::I8 | DType::I8Narrow | DType::I8Pairs => 1,
+            DType::I8Refined | DType::I8NarrowRefined | DType::I8RefinedPairs => 2,
         }
     }
 
     /// Whether the tensor holds a second weight plane ([`DType::I8Refined`]).
     pub const fn is_refined(self) -> bool {
-        matches!(self, DType::I8Refined | DType::I8NarrowRefined)
+        matches!(
+            self,
+            DType::I8Refined | DType::I8NarrowRefined | DType::I8RefinedPairs
+        )
+    }
+
+    /// Whether the tensor is a weight's pair layout ([`DType::I8Pairs`]).
+    pub const fn is_pairs(self) -> bool {
+        matches!(self, DType::I8Pairs | DType::I8RefinedPairs)
     }
 }
 
@@ -391,9 +408,10 @@ impl<'w> WeightsFile<'w> {
         let offset = usize::try_from(u64_at(row, 80)).map_err(|_| bad)?;
         let byte_len = usize::try_from(u64_at(row, 88)).map_err(|_| bad)?;
         // An int8 convolution kernel is stored in input-channel quads, `in` padded to a
-        // multiple of 4 (crate::shape::int8_quad_index).
+        // multiple of 4 (crate::shape::int8_quad_index), its pair layout in eights.
         let stored = match dtype {
             DType::F32 => elements,
+            _ if dtype.is_pairs() => int8_pair_stored_elements(&dims[..rank]).ok_or(bad)?,
             _ => int8_stored_elements(&dims[..rank]).ok_or(bad)?,
         };
         if stored.checked_mul(dtype.size()) != Some(byte_len) {

@@ -23,24 +23,30 @@ pub enum Activations<'s, 'a> {
 /// already there).
 static ZERO_BIAS: [f32; MAX_REFINED_CHANNELS] = [0.0; MAX_REFINED_CHANNELS];
 
-/// One int8 weight plane of a layer: its values and scales, the bias it adds and how it
-/// writes the output.
-pub type Plane<'p> = (&'p [i8], &'p [f32], &'p [f32], Accumulate);
+/// One int8 weight plane of a layer: its values (and their pair layout where the file holds
+/// it), scales, the bias it adds and how it writes the output.
+pub type Plane<'p> = (
+    (&'p [i8], Option<&'p [i8]>),
+    &'p [f32],
+    &'p [f32],
+    Accumulate,
+);
 
 /// The int8 planes of a layer, run one after the other on the same input codes: the
 /// weights with the layer's bias and `accumulate`, then a refined layer's residual plane
 /// added without bias (the loader bounds its channels by [`MAX_REFINED_CHANNELS`]).
 pub fn planes<'p>(
-    (values, scales): (&'p [i8], &'p [f32]),
+    (values, pairs, scales): (&'p [i8], Option<&'p [i8]>, &'p [f32]),
     residual: Option<Residual<'p>>,
     bias: &'p [f32],
     accumulate: Accumulate,
 ) -> impl Iterator<Item = Plane<'p>> {
     let residual = residual.map(|residual| {
         let zero = &ZERO_BIAS[..bias.len()];
-        (residual.values, residual.scales, zero, Accumulate::Add)
+        let values = (residual.values, residual.pairs);
+        (values, residual.scales, zero, Accumulate::Add)
     });
-    core::iter::once((values, scales, bias, accumulate)).chain(residual)
+    core::iter::once(((values, pairs), scales, bias, accumulate)).chain(residual)
 }
 
 /// A convolution with whichever weights the file holds.
@@ -57,20 +63,21 @@ pub fn convolve(
 ) {
     let input = &input[..shape.input_len()];
     let output = &mut output[..shape.output_len()];
-    let (values, scales, codes, residual) = match *weight {
+    let (values, pairs, scales, codes, residual) = match *weight {
         Weight::F32(values) => return kernels.conv(shape, input, values, bias, output, accumulate),
         Weight::Int8 {
             values,
             scales,
             activations,
             residual,
-        } => (values, scales, activations, residual),
+            pairs,
+        } => (values, pairs, scales, activations, residual),
     };
-    let planes = planes((values, scales), residual, bias, accumulate);
+    let planes = planes((values, pairs, scales), residual, bias, accumulate);
     match (codes, activations) {
         (_, Activations::Digits(scratch)) => {
             let digits = scratch.quantize(kernels, input);
-            for (values, scales, bias, accumulate) in planes {
+            for ((values, _), scales, bias, accumulate) in planes {
                 kernels.conv_int8(shape, &digits, values, scales, bias, output, accumulate)
             }
         }
@@ -78,21 +85,26 @@ pub fn convolve(
             let channels = shape.in_channels;
             if kernels.multiplies_signed_bytes() {
                 let codes = scratch.quantize_signed_bytes(kernels, input, channels);
-                for (values, scales, bias, accumulate) in planes {
-                    kernels.conv_int8_signed_bytes(
-                        shape, &codes, values, scales, bias, output, accumulate,
-                    )
+                for ((values, pairs), scales, bias, accumulate) in planes {
+                    match pairs {
+                        Some(pairs) => kernels.conv_int8_signed_bytes_paired(
+                            shape, &codes, values, pairs, scales, bias, output, accumulate,
+                        ),
+                        None => kernels.conv_int8_signed_bytes(
+                            shape, &codes, values, scales, bias, output, accumulate,
+                        ),
+                    }
                 }
             } else {
                 let codes = scratch.quantize_narrow_codes(kernels, input, channels);
-                for (values, scales, bias, accumulate) in planes {
+                for ((values, _), scales, bias, accumulate) in planes {
                     kernels.conv_int8_codes(shape, &codes, values, scales, bias, output, accumulate)
                 }
             }
         }
         (ActivationCodes::Wide, Activations::Codes(scratch)) => {
             let codes = scratch.quantize_codes(kernels, input, shape.in_channels);
-            for (values, scales, bias, accumulate) in planes {
+            for ((values, _), scales, bias, accumulate) in planes {
                 kernels.conv_int8_codes(shape, &codes, values, scales, bias, output, accumulate)
             }
         }
@@ -185,9 +197,9 @@ pub fn convolve_codes<'p>(
     planes: impl Iterator<Item = Plane<'p>>,
     output: &mut [f32],
 ) {
-    for (weight, weight_scales, bias, accumulate) in planes {
-        match codes {
-            TrunkCodes::Digits(digits) => kernels.conv_int8(
+    for ((weight, pairs), weight_scales, bias, accumulate) in planes {
+        match (codes, pairs) {
+            (TrunkCodes::Digits(digits), _) => kernels.conv_int8(
                 shape,
                 digits,
                 weight,
@@ -196,7 +208,17 @@ pub fn convolve_codes<'p>(
                 output,
                 accumulate,
             ),
-            TrunkCodes::Bytes(bytes) => kernels.conv_int8_bytes(
+            (TrunkCodes::Bytes(bytes), Some(pairs)) => kernels.conv_int8_bytes_paired(
+                shape,
+                bytes,
+                weight,
+                pairs,
+                weight_scales,
+                bias,
+                output,
+                accumulate,
+            ),
+            (TrunkCodes::Bytes(bytes), None) => kernels.conv_int8_bytes(
                 shape,
                 bytes,
                 weight,

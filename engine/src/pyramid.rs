@@ -117,9 +117,11 @@ impl<'v, 's, 'a> LayerInput<'v, 's, 'a> {
                 scales,
                 activations,
                 residual,
+                pairs,
             } => {
                 let codes = self.codes(kernels, activations);
-                let planes = layer::planes((values, scales), residual, conv.bias, overwrite);
+                let weights = (values, pairs, scales);
+                let planes = layer::planes(weights, residual, conv.bias, overwrite);
                 layer::convolve_codes(kernels, shape, &codes, planes, output)
             }
             Weight::F32(values) => {

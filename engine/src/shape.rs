@@ -148,6 +148,16 @@ impl ConvShape {
             * self.out_channels
     }
 
+    /// Length of the kernel in the int8 pair layout: input channels in zero-padded groups
+    /// of eight, see [`int8_pair_index`].
+    pub const fn int8_pair_weight_len(&self) -> usize {
+        self.kernel_height
+            * self.kernel_width
+            * int8_pairs(self.in_channels)
+            * PAIR
+            * self.out_channels
+    }
+
     /// [`int8_quad_index`] of this convolution's `(tap, input, output)` weight.
     pub const fn int8_index(&self, tap: usize, input: usize, output: usize) -> usize {
         int8_quad_index(
@@ -185,14 +195,26 @@ pub const fn int8_quad_index(
     taps: usize,
     in_channels: usize,
     out_channels: usize,
+    at: (usize, usize, usize),
+) -> usize {
+    int8_group_index(QUAD, taps, in_channels, out_channels, at)
+}
+
+/// [`int8_quad_index`] with input channels in groups of `group` (4: the quads, 8: the
+/// pairs of [`int8_pair_index`]).
+const fn int8_group_index(
+    group: usize,
+    taps: usize,
+    in_channels: usize,
+    out_channels: usize,
     (tap, input, output): (usize, usize, usize),
 ) -> usize {
-    let quads = int8_quads(in_channels);
+    let groups = in_channels.div_ceil(group);
     let block_start = output / INT8_CHANNEL_BLOCK * INT8_CHANNEL_BLOCK;
     let width = int8_quad_stride(out_channels, output) / QUAD;
-    block_start * taps * quads * QUAD
-        + ((tap * quads + input / QUAD) * width + output - block_start) * QUAD
-        + input % QUAD
+    block_start * taps * groups * group
+        + ((tap * groups + input / group) * width + output - block_start) * group
+        + input % group
 }
 
 /// Bytes from a quad of output channel `output` to its next quad in the int8 layout of
@@ -206,6 +228,30 @@ pub const fn int8_quad_stride(out_channels: usize, output: usize) -> usize {
         INT8_CHANNEL_BLOCK
     };
     width * QUAD
+}
+
+/// Input channels grouped per output channel in the pair layout: two quads, the eight
+/// bytes I8MM's matrix multiplies (`smmla`, `usmmla`) take for one row of an operand.
+pub const PAIR: usize = 2 * QUAD;
+
+/// Groups of eight covering `in_channels` (the last one zero-padded).
+pub const fn int8_pairs(in_channels: usize) -> usize {
+    in_channels.div_ceil(PAIR)
+}
+
+/// Where weight `(tap, input, output)` lives in the int8 pair layout, the quad layout of
+/// [`int8_quad_index`] with eight inputs a group instead of four:
+/// `[ceil(out / 64), taps, ceil(in / 8), block, 8]`. Two adjacent channels' groups are one
+/// 16-byte operand of a matrix multiply. A file may hold it beside the quads (docs/FORMAT.md)
+/// for the backends that multiply 2 x 8 matrices; a channel's next group is
+/// `2 int8_quad_stride` bytes further.
+pub const fn int8_pair_index(
+    taps: usize,
+    in_channels: usize,
+    out_channels: usize,
+    at: (usize, usize, usize),
+) -> usize {
+    int8_group_index(PAIR, taps, in_channels, out_channels, at)
 }
 
 /// An int8 tensor's dims read as a convolution kernel: `[kh, kw, in, out]` (2-D) or
@@ -233,15 +279,40 @@ pub fn int8_stored_elements(dims: &[usize]) -> Option<usize> {
     }
 }
 
+/// Elements the pair layout of a convolution kernel of `dims` stores
+/// (`taps x 8 ceil(in / 8) x out`, [`int8_pair_index`]); `None` for a tensor that is not a
+/// convolution kernel, or when that overflows.
+pub fn int8_pair_stored_elements(dims: &[usize]) -> Option<usize> {
+    let (taps, inputs, outputs) = int8_convolution(dims)?;
+    taps.checked_mul(int8_pairs(inputs) * PAIR)?
+        .checked_mul(outputs)
+}
+
 /// Packs `weight` (`[taps, in, out]`, the f32 layout) into the int8 quad layout `packed`
 /// (`taps * ceil(in / 4) * 4 * out` values; the padding channels are written as 0).
 pub fn pack_int8_quads(weight: &[i8], in_channels: usize, out_channels: usize, packed: &mut [i8]) {
+    pack_int8_groups(QUAD, weight, (in_channels, out_channels), packed)
+}
+
+/// Packs `weight` (`[taps, in, out]`) into the int8 pair layout `packed` (`taps * ceil(in /
+/// 8) * 8 * out` values; the padding channels are written as 0).
+pub fn pack_int8_pairs(weight: &[i8], in_channels: usize, out_channels: usize, packed: &mut [i8]) {
+    pack_int8_groups(PAIR, weight, (in_channels, out_channels), packed)
+}
+
+fn pack_int8_groups(
+    group: usize,
+    weight: &[i8],
+    (in_channels, out_channels): (usize, usize),
+    packed: &mut [i8],
+) {
     let taps = weight.len() / (in_channels * out_channels).max(1);
     packed.fill(0);
     for tap in 0..taps {
         for input in 0..in_channels {
             for output in 0..out_channels {
-                packed[int8_quad_index(taps, in_channels, out_channels, (tap, input, output))] =
+                let at = (tap, input, output);
+                packed[int8_group_index(group, taps, in_channels, out_channels, at)] =
                     weight[(tap * in_channels + input) * out_channels + output];
             }
         }

@@ -70,6 +70,9 @@ pub enum Weight<'w> {
         scales: &'w [f32],
         activations: ActivationCodes,
         residual: Option<Residual<'w>>,
+        /// The same values in the pair layout, where the file holds it ([`DType::I8Pairs`]:
+        /// 8-bit codes only).
+        pairs: Option<&'w [i8]>,
     },
 }
 
@@ -79,6 +82,8 @@ pub enum Weight<'w> {
 pub struct Residual<'w> {
     pub values: &'w [i8],
     pub scales: &'w [f32],
+    /// Its values in the pair layout, where the file holds the weight's.
+    pub pairs: Option<&'w [i8]>,
 }
 
 /// The most output channels a refined layer may have: its residual plane's convolution
@@ -161,6 +166,42 @@ impl<'w> FileSource<'w> {
     }
 }
 
+impl<'w> FileSource<'w> {
+    /// The optional pair layout of the int8 weight `name` just read (`dtype`): the next
+    /// entry when it is named `NAME.pairs`. Only 8-bit codes have one, with the weight's
+    /// dims and planes.
+    fn pairs(
+        &mut self,
+        name: fmt::Arguments<'_>,
+        dims: &[usize],
+        dtype: DType,
+    ) -> Result<Option<&'w [i8]>, Error> {
+        let index = self.next;
+        if index >= self.file.tensor_count() {
+            return Ok(None);
+        }
+        let entry = self.file.entry(index)?;
+        let mut pairs_name = heapless::String::<64>::new();
+        let unexpected = Error::UnexpectedTensor { index };
+        pairs_name
+            .write_fmt(format_args!("{name}.pairs"))
+            .map_err(|_| unexpected)?;
+        if entry.name != pairs_name.as_str() {
+            return Ok(None);
+        }
+        let expected = match dtype {
+            DType::I8Narrow => DType::I8Pairs,
+            DType::I8NarrowRefined => DType::I8RefinedPairs,
+            _ => return Err(unexpected),
+        };
+        if entry.dtype != expected || entry.dims() != dims {
+            return Err(unexpected);
+        }
+        self.next += 1;
+        Ok(Some(bytemuck::cast_slice(self.file.data(&entry))))
+    }
+}
+
 impl<'w> TensorSource<'w> for FileSource<'w> {
     fn f32_tensor(&mut self, name: fmt::Arguments<'_>, dims: &[usize]) -> Result<&'w [f32], Error> {
         let (index, entry) = self.next_entry(name, dims)?;
@@ -180,6 +221,10 @@ impl<'w> TensorSource<'w> for FileSource<'w> {
             DType::F32 => return Ok(Weight::F32(self.f32_data(index, &entry)?)),
             DType::I8 | DType::I8Refined => ActivationCodes::Wide,
             DType::I8Narrow | DType::I8NarrowRefined => ActivationCodes::Narrow,
+            // A pair layout comes after its weight's scales, never in a weight's place.
+            DType::I8Pairs | DType::I8RefinedPairs => {
+                return Err(Error::UnexpectedTensor { index });
+            }
         };
         let refined = entry.dtype.is_refined();
         // A layer whose input may be negative, or is quantized for several readers at once,
@@ -205,12 +250,21 @@ impl<'w> TensorSource<'w> for FileSource<'w> {
             return Err(Error::UnexpectedTensor { index: index + 1 });
         }
         self.int8_seen = true;
+        let pairs = self.pairs(name, dims, entry.dtype)?;
+        let (first_pairs, residual_pairs) = match pairs {
+            Some(pairs) if refined => {
+                let (first, second) = pairs.split_at(pairs.len() / 2);
+                (Some(first), Some(second))
+            }
+            pairs => (pairs, None),
+        };
         let (values, scales, residual) = if refined {
             let (values, residual_values) = values.split_at(values.len() / 2);
             let (scales, residual_scales) = scales.split_at(channels);
             let residual = Residual {
                 values: residual_values,
                 scales: residual_scales,
+                pairs: residual_pairs,
             };
             (values, scales, Some(residual))
         } else {
@@ -221,6 +275,7 @@ impl<'w> TensorSource<'w> for FileSource<'w> {
             scales,
             activations,
             residual,
+            pairs: first_pairs,
         })
     }
 }

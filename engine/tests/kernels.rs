@@ -489,6 +489,8 @@ struct CodeCase {
     scale: f32,
     weight: Vec<i8>,
     packed: Vec<i8>,
+    /// The same weights in the pair layout (`pack_int8_pairs`).
+    pairs: Vec<i8>,
     weight_scales: Vec<f32>,
     bias: Vec<f32>,
 }
@@ -503,12 +505,15 @@ impl CodeCase {
         let mut packed = vec![1i8; shape.int8_weight_len()];
         let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
         scdp_engine::kernels::pack_int8_quads(&weight, in_channels, out_channels, &mut packed);
+        let mut pairs = vec![1i8; shape.int8_pair_weight_len()];
+        scdp_engine::kernels::pack_int8_pairs(&weight, in_channels, out_channels, &mut pairs);
         CodeCase {
             shape,
             codes,
             scale: 0.01 + rng.next().abs(),
             weight,
             packed,
+            pairs,
             weight_scales: (0..out_channels)
                 .map(|_| 0.001 + rng.next().abs() * 0.01)
                 .collect(),
@@ -548,6 +553,26 @@ impl CodeCase {
         accumulate: Accumulate,
         initial: &[f32],
     ) -> Vec<f32> {
+        self.run_signed_bytes_with(kernels, accumulate, initial, false)
+    }
+
+    /// [`CodeCase::run_signed_bytes`] given the weights' pair layout as well.
+    fn run_signed_bytes_paired(
+        &self,
+        kernels: &dyn Kernels,
+        accumulate: Accumulate,
+        initial: &[f32],
+    ) -> Vec<f32> {
+        self.run_signed_bytes_with(kernels, accumulate, initial, true)
+    }
+
+    fn run_signed_bytes_with(
+        &self,
+        kernels: &dyn Kernels,
+        accumulate: Accumulate,
+        initial: &[f32],
+        paired: bool,
+    ) -> Vec<f32> {
         let codes: Vec<i8> = padded_codes(&self.codes, self.shape.in_channels)
             .into_iter()
             .map(|code| i8::try_from(code).unwrap())
@@ -563,15 +588,29 @@ impl CodeCase {
             scale: self.scale,
         };
         let mut output = initial.to_vec();
-        kernels.conv_int8_signed_bytes(
-            &self.shape,
-            &input,
-            &self.packed,
-            &self.weight_scales,
-            &self.bias,
-            &mut output,
-            accumulate,
-        );
+        let (shape, weight, scales, bias) =
+            (&self.shape, &self.packed, &self.weight_scales, &self.bias);
+        match paired {
+            true => kernels.conv_int8_signed_bytes_paired(
+                shape,
+                &input,
+                weight,
+                &self.pairs,
+                scales,
+                bias,
+                &mut output,
+                accumulate,
+            ),
+            false => kernels.conv_int8_signed_bytes(
+                shape,
+                &input,
+                weight,
+                scales,
+                bias,
+                &mut output,
+                accumulate,
+            ),
+        }
         output
     }
 
@@ -782,6 +821,8 @@ fn narrow_signed_code_convolution_equals_the_code_convolution_on_every_backend()
                 let found = code_case.run_signed_bytes(*kernels, accumulate, &initial);
                 let what = format!("{name} case {case} {shape:?} {accumulate:?}");
                 assert_same_bits(&found, &expected, &what);
+                let found = code_case.run_signed_bytes_paired(*kernels, accumulate, &initial);
+                assert_same_bits(&found, &expected, &format!("{what} paired"));
             }
         }
         // The model's path (`layer::convolve` of a narrow layer): each backend quantizes
@@ -795,11 +836,13 @@ fn narrow_signed_code_convolution_equals_the_code_convolution_on_every_backend()
                 values: &mut scratch,
             };
             let mut output = vec![0.0; shape.output_len()];
+            // Every other case with the pair layout, as a file may hold it.
             let weight = Weight::Int8 {
                 values: &code_case.packed,
                 scales: &code_case.weight_scales,
                 activations: ActivationCodes::Narrow,
                 residual: None,
+                pairs: case.is_multiple_of(2).then_some(code_case.pairs.as_slice()),
             };
             layer::convolve(
                 kernels,
@@ -1591,6 +1634,8 @@ struct ByteCase {
     bytes: Vec<u8>,
     scale: f32,
     packed: Vec<i8>,
+    /// The same weights in the pair layout (`pack_int8_pairs`).
+    pairs: Vec<i8>,
     weight_scales: Vec<f32>,
     bias: Vec<f32>,
 }
@@ -1610,11 +1655,14 @@ impl ByteCase {
         let mut packed = vec![0i8; shape.int8_weight_len()];
         let (in_channels, out_channels) = (shape.in_channels, shape.out_channels);
         scdp_engine::kernels::pack_int8_quads(&weight, in_channels, out_channels, &mut packed);
+        let mut pairs = vec![1i8; shape.int8_pair_weight_len()];
+        scdp_engine::kernels::pack_int8_pairs(&weight, in_channels, out_channels, &mut pairs);
         ByteCase {
             shape,
             bytes,
             scale,
             packed,
+            pairs,
             weight_scales: (0..out_channels)
                 .map(|_| 0.001 + rng.next().abs())
                 .collect(),
@@ -1631,6 +1679,29 @@ impl ByteCase {
 
     fn parameters(&self) -> (&[i8], &[f32], &[f32]) {
         (&self.packed, &self.weight_scales, &self.bias)
+    }
+
+    /// `conv_int8_bytes_paired` on `kernels`, starting from `initial`.
+    fn run_paired(
+        &self,
+        kernels: &dyn Kernels,
+        accumulate: Accumulate,
+        initial: &[f32],
+    ) -> Vec<f32> {
+        let mut output = initial.to_vec();
+        let (weight, scales, bias) = self.parameters();
+        let input = self.input();
+        kernels.conv_int8_bytes_paired(
+            &self.shape,
+            &input,
+            weight,
+            &self.pairs,
+            scales,
+            bias,
+            &mut output,
+            accumulate,
+        );
+        output
     }
 
     /// `conv_int8_bytes` on `kernels`, starting from `initial`.
@@ -1665,6 +1736,8 @@ impl ByteCase {
         for (name, kernels) in backends {
             let found = self.run(*kernels, accumulate, initial);
             assert_same_bits(&found, &expected, &format!("{what} {name}"));
+            let found = self.run_paired(*kernels, accumulate, initial);
+            assert_same_bits(&found, &expected, &format!("{what} {name} paired"));
         }
         expected
     }
@@ -1801,7 +1874,9 @@ fn narrow_byte_convolution_is_bit_identical_on_every_backend() {
             let codes = quantize.view(&quantized);
             let mut output = vec![0.0; shape.output_len()];
             let (weight, scales, bias) = problem.parameters();
-            let planes = layer::planes((weight, scales), None, bias, Accumulate::Overwrite);
+            // Every other case with the pair layout, as a file may hold it.
+            let pairs = case.is_multiple_of(2).then_some(problem.pairs.as_slice());
+            let planes = layer::planes((weight, pairs, scales), None, bias, Accumulate::Overwrite);
             layer::convolve_codes(kernels, &shape, &codes, planes, &mut output);
             output
         };
@@ -1856,6 +1931,10 @@ fn byte_convolutions_cover_every_tile_remainder() {
                 for (name, kernels) in &backends {
                     let found = code_case.run_signed_bytes(*kernels, Accumulate::Add, &initial);
                     assert_same_bits(&found, &expected, &format!("signed {name} {shape:?}"));
+                    let found =
+                        code_case.run_signed_bytes_paired(*kernels, Accumulate::Add, &initial);
+                    let what = format!("signed paired {name} {shape:?}");
+                    assert_same_bits(&found, &expected, &what);
                 }
             }
         }
@@ -2506,13 +2585,25 @@ fn split_activation_digits_reconstruct_the_input() {
     assert!(scale.is_nan() && high == [0, 0] && low == [0, 0]);
 }
 
-/// The int8 kernel layout the tool writes and every backend reads: each weight has its own
-/// place inside the packed length, and within a block of 64 output channels a channel's
-/// next quad is `int8_quad_stride` further (what the SIMD tiles step by), its channels side
-/// by side. Output counts around the block width, including a narrow last block.
+/// The int8 kernel layouts: the quads the tool writes and every backend reads, and the
+/// pairs (eight inputs a group) a file may add for I8MM's operands. In each, every weight
+/// has its own place inside the packed length; within a block of 64 output channels a
+/// channel's next group is `int8_quad_stride` (quads) or twice that (pairs) further, what
+/// the SIMD tiles step by, its channels side by side; packing puts each weight there and
+/// zeros in the padding. Output counts around the block width, including a narrow last
+/// block.
 #[test]
-fn int8_layout_places_every_weight_once_and_steps_quads_within_a_block() {
-    use scdp_engine::kernels::{INT8_CHANNEL_BLOCK, QUAD, int8_quad_index, int8_quad_stride};
+fn int8_layouts_place_every_weight_once_and_step_groups_within_a_block() {
+    use scdp_engine::kernels::{
+        INT8_CHANNEL_BLOCK, PAIR, QUAD, int8_pair_index, int8_quad_index, int8_quad_stride,
+        pack_int8_pairs, pack_int8_quads,
+    };
+    type Index = fn(usize, usize, usize, (usize, usize, usize)) -> usize;
+    type Pack = fn(&[i8], usize, usize, &mut [i8]);
+    let layouts: [(usize, Index, Pack); 2] = [
+        (QUAD, int8_quad_index, pack_int8_quads),
+        (PAIR, int8_pair_index, pack_int8_pairs),
+    ];
     for (taps, in_channels, out_channels) in [
         (1usize, 4usize, 1usize),
         (9, 3, 64),
@@ -2523,46 +2614,52 @@ fn int8_layout_places_every_weight_once_and_steps_quads_within_a_block() {
         (1, 196, 200),
         (5, 12, 384),
     ] {
-        let quads = in_channels.div_ceil(QUAD);
-        let len = taps * quads * QUAD * out_channels;
-        let mut seen = vec![false; len];
-        for tap in 0..taps {
-            for input in 0..quads * QUAD {
-                for output in 0..out_channels {
-                    let at = int8_quad_index(taps, in_channels, out_channels, (tap, input, output));
-                    assert!(
-                        at < len,
-                        "{taps} {in_channels} {out_channels}: {at} >= {len}"
-                    );
-                    assert!(
-                        !seen[at],
-                        "({tap}, {input}, {output}) lands on a used place"
-                    );
-                    seen[at] = true;
-                    let block_start = output / INT8_CHANNEL_BLOCK * INT8_CHANNEL_BLOCK;
-                    let width = (out_channels - block_start).min(INT8_CHANNEL_BLOCK);
-                    assert_eq!(int8_quad_stride(out_channels, output), width * QUAD);
-                    if input % QUAD == 0 && input + QUAD < quads * QUAD {
-                        let next = (tap, input + QUAD, output);
-                        let step = int8_quad_index(taps, in_channels, out_channels, next) - at;
-                        assert_eq!(
-                            step,
-                            width * QUAD,
-                            "quad step of ({tap}, {input}, {output})"
+        let shape = (taps, in_channels, out_channels);
+        let mut rng = Lcg(taps as u64 * 1000 + in_channels as u64);
+        let weight = random_i8(&mut rng, taps * in_channels * out_channels);
+        for (group, index, pack) in layouts {
+            let what = format!("{shape:?} in groups of {group}");
+            let index = |at| index(taps, in_channels, out_channels, at);
+            let groups = in_channels.div_ceil(group);
+            let len = taps * groups * group * out_channels;
+            let mut seen = vec![false; len];
+            let mut packed = vec![1i8; len];
+            pack(&weight, in_channels, out_channels, &mut packed);
+            for tap in 0..taps {
+                for input in 0..groups * group {
+                    for output in 0..out_channels {
+                        let at = index((tap, input, output));
+                        assert!(at < len, "{what}: {at} >= {len}");
+                        assert!(
+                            !seen[at],
+                            "{what}: ({tap}, {input}, {output}) on a used place"
                         );
-                    }
-                    if output > block_start {
-                        let previous = (tap, input, output - 1);
-                        let before = int8_quad_index(taps, in_channels, out_channels, previous);
-                        assert_eq!(at - before, QUAD, "channels of a block side by side");
+                        seen[at] = true;
+                        let expected = match input < in_channels {
+                            true => weight[(tap * in_channels + input) * out_channels + output],
+                            false => 0,
+                        };
+                        assert_eq!(packed[at], expected, "{what}: ({tap}, {input}, {output})");
+                        let block_start = output / INT8_CHANNEL_BLOCK * INT8_CHANNEL_BLOCK;
+                        let width = (out_channels - block_start).min(INT8_CHANNEL_BLOCK);
+                        assert_eq!(int8_quad_stride(out_channels, output), width * QUAD);
+                        if input % group == 0 && input + group < groups * group {
+                            let step = index((tap, input + group, output)) - at;
+                            assert_eq!(
+                                step,
+                                width * group,
+                                "{what}: step of ({tap}, {input}, {output})"
+                            );
+                        }
+                        if output > block_start {
+                            let before = index((tap, input, output - 1));
+                            assert_eq!(at - before, group, "{what}: channels side by side");
+                        }
                     }
                 }
             }
+            assert!(seen.iter().all(|&s| s), "{what}: a gap");
         }
-        assert!(
-            seen.iter().all(|&s| s),
-            "{taps} {in_channels} {out_channels}: a gap"
-        );
     }
 }
 
@@ -2641,7 +2738,9 @@ fn a_refined_layer_adds_its_residual_plane() {
             residual: refined.then_some(scdp_engine::weights::Residual {
                 values: &second,
                 scales: &residual_scales,
+                pairs: None,
             }),
+            pairs: None,
         };
         let mut scratch = vec![0i8; 4 * shape.input_len() + 4096];
         let mut quantize = QuantizeScratch {
@@ -2775,30 +2874,51 @@ fn calls_cut_over_workers_give_the_whole_calls_bits_on_every_backend() {
                         cut("int8 conv");
                         let bytes: Vec<u8> =
                             problem.values.iter().map(|&v| (v & 255) as u8).collect();
-                        let byte_run = |kernels: &dyn Kernels| {
-                            let (packed, _) = problem.packed();
+                        let (packed, _) = problem.packed();
+                        let mut pairs = vec![0i8; shape.int8_pair_weight_len()];
+                        let (inputs, outputs) = (shape.in_channels, shape.out_channels);
+                        let weight = &problem.weight;
+                        scdp_engine::kernels::pack_int8_pairs(weight, inputs, outputs, &mut pairs);
+                        let byte_run = |kernels: &dyn Kernels, paired: bool| {
                             let input = ByteRows {
                                 bytes: &bytes,
                                 scale: problem.scale,
                             };
                             let mut output = initial.clone();
-                            kernels.conv_int8_bytes(
-                                shape,
-                                &input,
-                                &packed,
-                                &problem.weight_scales,
-                                &problem.bias,
-                                &mut output,
-                                accumulate,
-                            );
+                            let (scales, bias) = (&problem.weight_scales, &problem.bias);
+                            match paired {
+                                true => kernels.conv_int8_bytes_paired(
+                                    shape,
+                                    &input,
+                                    &packed,
+                                    &pairs,
+                                    scales,
+                                    bias,
+                                    &mut output,
+                                    accumulate,
+                                ),
+                                false => kernels.conv_int8_bytes(
+                                    shape,
+                                    &input,
+                                    &packed,
+                                    scales,
+                                    bias,
+                                    &mut output,
+                                    accumulate,
+                                ),
+                            }
                             output
                         };
+                        let whole = byte_run(kernels, false);
                         assert_same_bits(
-                            &byte_run(&split),
-                            &byte_run(kernels),
+                            &byte_run(&split, false),
+                            &whole,
                             &format!("bytes {what}"),
                         );
                         cut("byte conv");
+                        let found = byte_run(&split, true);
+                        assert_same_bits(&found, &whole, &format!("paired bytes {what}"));
+                        cut("paired byte conv");
                     } else {
                         let found = code_case.run(&split, accumulate, &initial);
                         assert_same_bits(
@@ -2813,6 +2933,10 @@ fn calls_cut_over_workers_give_the_whole_calls_bits_on_every_backend() {
                         let whole = code_case.run_signed_bytes(kernels, accumulate, &initial);
                         assert_same_bits(&found, &whole, &format!("signed bytes {what}"));
                         cut("signed byte conv");
+                        let found = code_case.run_signed_bytes_paired(&split, accumulate, &initial);
+                        let what = format!("paired signed bytes {what}");
+                        assert_same_bits(&found, &whole, &what);
+                        cut("paired signed byte conv");
                         code_case.codes = wide;
                     }
                 }

@@ -84,6 +84,7 @@ fn int8_stem_over_patches_equals_the_7x7_convolution() {
                 scales: &scales,
                 activations: ActivationCodes::Wide,
                 residual: None,
+                pairs: None,
             },
             bias: &bias,
         },

@@ -35,8 +35,9 @@ use ops::Activation;
 // The plain shapes the kernels' contract is written in, under the names the kernels have
 // always exported them by.
 pub use crate::shape::{
-    ConvShape, INT8_CHANNEL_BLOCK, QUAD, int8_convolution, int8_quad_index, int8_quad_stride,
-    int8_quads, int8_stored_elements, pack_int8_quads,
+    ConvShape, INT8_CHANNEL_BLOCK, PAIR, QUAD, int8_convolution, int8_pair_index, int8_pairs,
+    int8_quad_index, int8_quad_stride, int8_quads, int8_stored_elements, pack_int8_pairs,
+    pack_int8_quads,
 };
 
 /// Which kernel implementation to run.
@@ -413,6 +414,37 @@ pub trait Kernels: Sync {
         accumulate: Accumulate,
     );
 
+    /// [`conv_int8_bytes`](Self::conv_int8_bytes) given the same weights in the pair layout
+    /// too (`pairs`: [`int8_pair_index`], `shape.int8_pair_weight_len()` values, where the
+    /// file holds them): the same bits. I8MM's matrix multiplies take eight inputs of two
+    /// channels an operand, which the pairs are as stored; this default reads the quads.
+    ///
+    /// # Panics
+    /// As `conv_int8_bytes`, and if `pairs` has another length where it is read.
+    #[allow(clippy::too_many_arguments)]
+    fn conv_int8_bytes_paired(
+        &self,
+        shape: &ConvShape,
+        input: &ByteRows<'_>,
+        weight: &[i8],
+        pairs: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let _ = pairs;
+        self.conv_int8_bytes(
+            shape,
+            input,
+            weight,
+            weight_scales,
+            bias,
+            output,
+            accumulate,
+        )
+    }
+
     /// [`conv_int8_codes`](Self::conv_int8_codes) on narrow signed codes
     /// ([`SignedByteRows`]: one signed byte a value, |code| <= 127, rows padded to whole
     /// quads as [`CodeRows`]' are): the same exact sums (over at most [`MAX_BYTE_TERMS`]
@@ -437,6 +469,36 @@ pub trait Kernels: Sync {
         let parameters = (weight, weight_scales, bias);
         scalar::assert_signed_byte_lengths(shape, input, parameters, output.len());
         scalar::conv_int8_signed_bytes(shape, input, parameters, output, accumulate);
+    }
+
+    /// [`conv_int8_signed_bytes`](Self::conv_int8_signed_bytes) given the weights in the
+    /// pair layout too, as [`conv_int8_bytes_paired`](Self::conv_int8_bytes_paired): the
+    /// same bits; this default reads the quads.
+    ///
+    /// # Panics
+    /// As `conv_int8_signed_bytes`, and if `pairs` has another length where it is read.
+    #[allow(clippy::too_many_arguments)]
+    fn conv_int8_signed_bytes_paired(
+        &self,
+        shape: &ConvShape,
+        input: &SignedByteRows<'_>,
+        weight: &[i8],
+        pairs: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let _ = pairs;
+        self.conv_int8_signed_bytes(
+            shape,
+            input,
+            weight,
+            weight_scales,
+            bias,
+            output,
+            accumulate,
+        )
     }
 
     /// [`matvec`](Self::matvec) with int8 weights (row-major `[rows, cols]`, one scale per

@@ -30,7 +30,9 @@ type Band<'b> = dyn Fn(&ConvShape, Range<usize>, &mut [f32]) + Sync + 'b;
 type Int8Parameters<'p> = (&'p [i8], &'p [f32], &'p [f32]);
 
 /// An int8 convolution kernel on an input fixed by the caller.
-type Int8Run<'r> = dyn Fn(&ConvShape, Int8Parameters<'_>, &mut [f32], Accumulate) + Sync + 'r;
+/// `channels`: the output channels the call computes, of the whole convolution's.
+type Int8Run<'r> =
+    dyn Fn(&ConvShape, Int8Parameters<'_>, Range<usize>, &mut [f32], Accumulate) + Sync + 'r;
 
 /// Multiply-adds below which a call runs whole: handing pieces to the other cores costs a
 /// microsecond or so.
@@ -238,8 +240,8 @@ impl<'s> Split<'s> {
         run: &Int8Run<'_>,
     ) {
         let block = |channels: Range<usize>, output: &mut [f32]| {
-            let (part, parameters) = channel_block(shape, parameters, channels);
-            run(&part, parameters, output, Accumulate::Overwrite);
+            let (part, parameters) = channel_block(shape, parameters, channels.clone());
+            run(&part, parameters, channels, output, Accumulate::Overwrite);
             true
         };
         let store = match accumulate {
@@ -249,7 +251,37 @@ impl<'s> Split<'s> {
         let cut = int8_lengths_hold(shape, parameters)
             && self.split_channels(shape, shape.int8_weight_len(), output, store, &block);
         if !cut {
-            run(shape, parameters, output, accumulate)
+            run(shape, parameters, 0..shape.out_channels, output, accumulate)
+        }
+    }
+
+    /// `conv_int8_bytes` (with the weights' pair layout where given) in bands of output
+    /// rows, the whole weights to each.
+    fn bytes_by_rows(
+        &self,
+        shape: &ConvShape,
+        input: &ByteRows<'_>,
+        (weight, scales, bias): Int8Parameters<'_>,
+        pairs: Option<&[i8]>,
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let kernels = self.kernels;
+        let run = |shape: &ConvShape, input: &ByteRows<'_>, output: &mut [f32]| match pairs {
+            Some(pairs) => kernels.conv_int8_bytes_paired(
+                shape, input, weight, pairs, scales, bias, output, accumulate,
+            ),
+            None => kernels.conv_int8_bytes(shape, input, weight, scales, bias, output, accumulate),
+        };
+        let band = |part: &ConvShape, inputs: Range<usize>, output: &mut [f32]| {
+            let bytes = ByteRows {
+                bytes: &input.bytes[inputs],
+                ..*input
+            };
+            run(part, &bytes, output)
+        };
+        if !self.split_rows(shape, input.bytes.len(), output, &band) {
+            run(shape, input, output)
         }
     }
 
@@ -504,33 +536,23 @@ impl Kernels for Split<'_> {
         output: &mut [f32],
         accumulate: Accumulate,
     ) {
-        let kernels = self.kernels;
-        let band = |part: &ConvShape, inputs: Range<usize>, output: &mut [f32]| {
-            let bytes = ByteRows {
-                bytes: &input.bytes[inputs],
-                ..*input
-            };
-            kernels.conv_int8_bytes(
-                part,
-                &bytes,
-                weight,
-                weight_scales,
-                bias,
-                output,
-                accumulate,
-            )
-        };
-        if !self.split_rows(shape, input.bytes.len(), output, &band) {
-            kernels.conv_int8_bytes(
-                shape,
-                input,
-                weight,
-                weight_scales,
-                bias,
-                output,
-                accumulate,
-            )
-        }
+        let parameters = (weight, weight_scales, bias);
+        self.bytes_by_rows(shape, input, parameters, None, output, accumulate)
+    }
+
+    fn conv_int8_bytes_paired(
+        &self,
+        shape: &ConvShape,
+        input: &ByteRows<'_>,
+        weight: &[i8],
+        pairs: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let parameters = (weight, weight_scales, bias);
+        self.bytes_by_rows(shape, input, parameters, Some(pairs), output, accumulate)
     }
 
     fn conv_int8_codes(
@@ -546,6 +568,7 @@ impl Kernels for Split<'_> {
         let kernels = self.kernels;
         let run = |shape: &ConvShape,
                    (weight, scales, bias): Int8Parameters<'_>,
+                   _: Range<usize>,
                    output: &mut [f32],
                    accumulate| {
             kernels.conv_int8_codes(shape, input, weight, scales, bias, output, accumulate)
@@ -567,9 +590,43 @@ impl Kernels for Split<'_> {
         let kernels = self.kernels;
         let run = |shape: &ConvShape,
                    (weight, scales, bias): Int8Parameters<'_>,
+                   _: Range<usize>,
                    output: &mut [f32],
                    accumulate| {
             kernels.conv_int8_signed_bytes(shape, input, weight, scales, bias, output, accumulate)
+        };
+        let parameters = (weight, weight_scales, bias);
+        self.int8_by_channels(shape, parameters, output, accumulate, &run)
+    }
+
+    fn conv_int8_signed_bytes_paired(
+        &self,
+        shape: &ConvShape,
+        input: &SignedByteRows<'_>,
+        weight: &[i8],
+        pairs: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let kernels = self.kernels;
+        // The pair layout keeps the quads' blocks of channels, so a run of whole blocks is
+        // one run of pairs too.
+        let per_channel = shape.int8_pair_weight_len() / shape.out_channels.max(1);
+        let whole = pairs.len() == shape.int8_pair_weight_len();
+        let run = |part: &ConvShape,
+                   (weight, scales, bias): Int8Parameters<'_>,
+                   channels: Range<usize>,
+                   output: &mut [f32],
+                   accumulate| {
+            let pairs = match whole {
+                true => &pairs[channels.start * per_channel..channels.end * per_channel],
+                false => pairs,
+            };
+            kernels.conv_int8_signed_bytes_paired(
+                part, input, weight, pairs, scales, bias, output, accumulate,
+            )
         };
         let parameters = (weight, weight_scales, bias);
         self.int8_by_channels(shape, parameters, output, accumulate, &run)

@@ -362,7 +362,28 @@ impl Kernels for I8mm {
     ) {
         let parameters = (weight, weight_scales, bias);
         // SAFETY: `self` exists only when I8MM was detected.
-        unsafe { super::mmla::checked_conv_bytes(shape, input, parameters, output, accumulate) }
+        unsafe {
+            super::mmla::checked_conv_bytes(shape, input, parameters, None, output, accumulate)
+        }
+    }
+
+    fn conv_int8_bytes_paired(
+        &self,
+        shape: &ConvShape,
+        input: &ByteRows<'_>,
+        weight: &[i8],
+        pairs: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let parameters = (weight, weight_scales, bias);
+        let pairs = Some(pairs);
+        // SAFETY: `self` exists only when I8MM was detected.
+        unsafe {
+            super::mmla::checked_conv_bytes(shape, input, parameters, pairs, output, accumulate)
+        }
     }
 
     fn conv_int8_signed_bytes(
@@ -376,11 +397,28 @@ impl Kernels for I8mm {
         accumulate: Accumulate,
     ) {
         let parameters = (weight, weight_scales, bias);
+        let run = super::mmla::checked_conv_signed_bytes;
         // SAFETY: `self` exists only when I8MM was detected.
-        unsafe {
-            super::mmla::checked_conv_signed_bytes(shape, input, parameters, output, accumulate)
-        }
+        unsafe { run(shape, input, parameters, None, output, accumulate) }
     }
+
+    fn conv_int8_signed_bytes_paired(
+        &self,
+        shape: &ConvShape,
+        input: &SignedByteRows<'_>,
+        weight: &[i8],
+        pairs: &[i8],
+        weight_scales: &[f32],
+        bias: &[f32],
+        output: &mut [f32],
+        accumulate: Accumulate,
+    ) {
+        let parameters = (weight, weight_scales, bias);
+        let run = super::mmla::checked_conv_signed_bytes;
+        // SAFETY: `self` exists only when I8MM was detected.
+        unsafe { run(shape, input, parameters, Some(pairs), output, accumulate) }
+    }
+
     matvec_on_sdot!(i8mm);
 
     /// `usmmla` multiplies whole bytes.

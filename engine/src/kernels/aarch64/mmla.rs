@@ -13,8 +13,9 @@
 //! (`2 V` channel pairs) runs `2 PAIRS V` multiplies in `2 PAIRS V + PAIRS + 2 V` vector
 //! instructions. 6 pairs by 2 vectors (12 pixels by 8 channels, 24 sums of the 32
 //! registers) is the most the registers hold: 24 multiplies in 34 instructions, 70.6% of
-//! the multiplies' peak, against the dot products' 50%. Weights stored pre-paired (8-byte
-//! groups, a second int8 layout in the file) would drop the zips: 80% for the same tile.
+//! the multiplies' peak, against the dot products' 50%. Where the file holds the weights in
+//! the pair layout as well (eight inputs a group, `crate::shape::int8_pair_index`), each
+//! channel pair is one plain load and the zips go: 24 multiplies in 30 instructions, 80%.
 //!
 //! The sums are exact integers as the dot products' are, so every output has the same bits
 //! as on every other backend.
@@ -34,13 +35,19 @@ use crate::kernels::simd::int8::{
 };
 use crate::kernels::simd::prefetch_lines_into_l2;
 use crate::kernels::{
-    Accumulate, ByteRows, CodeRows, ConvShape, INT8_CHANNEL_BLOCK, QUAD, SignedByteRows,
-    int8_quad_stride,
+    Accumulate, ByteRows, CodeRows, ConvShape, INT8_CHANNEL_BLOCK, PAIR, QUAD, SignedByteRows,
+    int8_pair_index, int8_quad_stride,
 };
 
-/// Pixel pairs x vectors of four channels of the main tile: 24 sums, the pairs' operands and
-/// two vectors' weights in the 32 registers.
-const TILE: (usize, usize) = (6, 2);
+/// Pixel pairs x vectors of four channels of the main tile on quads: 24 sums, the pairs'
+/// operands and two vectors' weights in the 32 registers.
+const QUADS_TILE: (usize, usize) = (6, 2);
+
+/// The main tile on the pair layout (6 pixels by 16 channels): 24 sums, three pixel pairs'
+/// operands and a weight operand at a time in the registers. Its weights cost loads only,
+/// so it takes more channels and fewer pixels: 24 multiplies and 3 lane loads a step, 89% of
+/// the multiplies' peak (the quads' tile of 12 x 8 would reach 80%).
+const PAIRS_TILE: (usize, usize) = (3, 4);
 
 /// Pixel pairs of the tile that takes a map's last pixels, up to 8 of them (a map of 16
 /// pixels: 12 and 4): 2 pairs by 2 vectors take 14 vector instructions a step to the main
@@ -136,37 +143,142 @@ impl MatrixInput for SignedByteRows<'_> {
     }
 }
 
+/// How the weights a tile reads are laid out: the quads every backend reads, or the pair
+/// layout a file may hold beside them.
+trait WeightLayout {
+    /// Whether a step loads every pixel pair's operand first and streams the weights past
+    /// them (weights that cost a load only), or holds the weights and streams the pixels
+    /// (weights that cost a `zip` each).
+    const PIXELS_FIRST: bool;
+
+    /// Index of tap `tap`'s first inputs of channel `channel` (a multiple of four).
+    fn tap_start(shape: &ConvShape, tap: usize, channel: usize) -> usize;
+
+    /// Channels (c0, c1) and (c2, c3) of the `vector`-th four from the step's first (eight
+    /// inputs a step: one step's weights start at `step`, steps `2 quad_stride` bytes
+    /// apart); `last` for a step of one quad, whose other four inputs weigh zero.
+    ///
+    /// # Safety
+    /// NEON; the step's weights of the vector's four channels are readable.
+    unsafe fn channel_pairs(
+        step: *const i8,
+        vector: usize,
+        quad_stride: usize,
+        last: bool,
+    ) -> [int8x16_t; 2];
+
+    /// Asks L2 for the weights of `V` vectors at `ahead` (a step's start, maybe past the
+    /// end: a hint never faults).
+    fn prefetch<const V: usize>(ahead: *const i8, quad_stride: usize);
+}
+
+/// Input-channel quads: a step is two quad rows, paired by `zip`.
+struct Quads;
+
+/// The pair layout: a step's channel pairs as stored.
+struct Pairs;
+
+impl WeightLayout for Quads {
+    const PIXELS_FIRST: bool = false;
+
+    fn tap_start(shape: &ConvShape, tap: usize, channel: usize) -> usize {
+        shape.int8_index(tap, 0, channel)
+    }
+
+    #[inline(always)]
+    unsafe fn channel_pairs(
+        step: *const i8,
+        vector: usize,
+        quad_stride: usize,
+        last: bool,
+    ) -> [int8x16_t; 2] {
+        let first = step.wrapping_add(vector * Lanes::WIDTH * QUAD);
+        // SAFETY: the quad rows the caller vouches for; NEON (likewise).
+        unsafe {
+            let high = match last {
+                true => vreinterpretq_s8_s32(vdupq_n_s32(0)),
+                false => vld1q_s8(first.add(quad_stride)),
+            };
+            channel_pairs(vld1q_s8(first), high)
+        }
+    }
+
+    #[inline(always)]
+    fn prefetch<const V: usize>(ahead: *const i8, quad_stride: usize) {
+        prefetch_lines_into_l2(ahead, V * Lanes::WIDTH * QUAD);
+        prefetch_lines_into_l2(ahead.wrapping_add(quad_stride), V * Lanes::WIDTH * QUAD);
+    }
+}
+
+impl WeightLayout for Pairs {
+    const PIXELS_FIRST: bool = true;
+
+    fn tap_start(shape: &ConvShape, tap: usize, channel: usize) -> usize {
+        let taps = shape.kernel_height * shape.kernel_width;
+        int8_pair_index(
+            taps,
+            shape.in_channels,
+            shape.out_channels,
+            (tap, 0, channel),
+        )
+    }
+
+    #[inline(always)]
+    unsafe fn channel_pairs(step: *const i8, vector: usize, _: usize, _: bool) -> [int8x16_t; 2] {
+        // A last group of four stores the other four as zeros.
+        let first = step.wrapping_add(vector * Lanes::WIDTH * PAIR);
+        // SAFETY: the step's pairs the caller vouches for; NEON (likewise).
+        unsafe { [vld1q_s8(first), vld1q_s8(first.add(2 * PAIR))] }
+    }
+
+    #[inline(always)]
+    fn prefetch<const V: usize>(ahead: *const i8, _: usize) {
+        prefetch_lines_into_l2(ahead, V * Lanes::WIDTH * PAIR);
+    }
+}
+
 /// `sums +` one kernel tap's products: `sources` are each pair's two rows of `quads` whole
-/// quads, `weights` the tap's quad 0 of the block's first channel, its quads `quad_stride`
-/// bytes apart, `4 V` channels each. Eight inputs a step; an odd last quad pairs with zeros.
+/// quads, `weights` the tap's first inputs of the block's first channel in layout `W`
+/// (`quad_stride` the quads' stride), `4 V` channels each. Eight inputs a step; an odd last
+/// quad pairs with zeros.
 ///
 /// # Safety
 /// The CPU has I8MM; the rows and the weights are readable as described.
 #[inline(always)]
-unsafe fn add_tap<I: MatrixInput, const PAIRS: usize, const V: usize>(
+unsafe fn add_tap<I: MatrixInput, W: WeightLayout, const PAIRS: usize, const V: usize>(
     mut sums: Sums<PAIRS, V>,
     sources: &[[*const i8; 2]; PAIRS],
     weights: *const i8,
     quads: usize,
     quad_stride: usize,
 ) -> Sums<PAIRS, V> {
-    let vector_bytes = Lanes::WIDTH * QUAD;
     // SAFETY (both parts): every read is inside a source row's `quads` quads or the tap's
-    // quad rows of the block (the caller's promise); I8MM (likewise).
+    // weights of the block (the caller's promise); I8MM (likewise).
     unsafe {
         for step in 0..quads / 2 {
             let at = 2 * QUAD * step;
             let row = weights.add(2 * step * quad_stride);
             if I::STREAMED {
                 // A hint only (it never faults), hence the wrapping address.
-                let ahead = row.wrapping_add(PREFETCH_QUADS * quad_stride);
-                prefetch_lines_into_l2(ahead, V * vector_bytes);
-                prefetch_lines_into_l2(ahead.wrapping_add(quad_stride), V * vector_bytes);
+                W::prefetch::<V>(row.wrapping_add(PREFETCH_QUADS * quad_stride), quad_stride);
+            }
+            if W::PIXELS_FIRST {
+                // Every pair's operand, then one weight operand at a time, used at once.
+                let pairs = sources.map(|rows| pixel_pair(rows[0].add(at), rows[1].add(at)));
+                for vector in 0..V {
+                    let channels = W::channel_pairs(row, vector, quad_stride, false);
+                    for (half, &channels) in channels.iter().enumerate() {
+                        for (sums, &pair) in sums.iter_mut().zip(&pairs) {
+                            let sum = &mut sums[vector][half];
+                            *sum = I::Product::multiply(*sum, pair, channels);
+                        }
+                    }
+                }
+                continue;
             }
             let mut channels = [[vreinterpretq_s8_s32(vdupq_n_s32(0)); 2]; V];
             for (vector, channels) in channels.iter_mut().enumerate() {
-                let first = row.add(vector * vector_bytes);
-                *channels = channel_pairs(vld1q_s8(first), vld1q_s8(first.add(quad_stride)));
+                *channels = W::channel_pairs(row, vector, quad_stride, false);
             }
             // One pair's operand at a time, used at once: the sums, the weights and one
             // operand fill the registers.
@@ -191,9 +303,8 @@ unsafe fn add_tap<I: MatrixInput, const PAIRS: usize, const V: usize>(
                 let second = rows[1].add(at).cast::<u32>().read_unaligned();
                 *pair = vcombine_s8(vcreate_s8(first.into()), vcreate_s8(second.into()));
             }
-            let zero = vreinterpretq_s8_s32(vdupq_n_s32(0));
             for vector in 0..V {
-                let channels = channel_pairs(vld1q_s8(row.add(vector * vector_bytes)), zero);
+                let channels = W::channel_pairs(row, vector, quad_stride, true);
                 for (pair, sums) in pairs.iter().zip(sums.iter_mut()) {
                     for (sum, channels) in sums[vector].iter_mut().zip(channels) {
                         *sum = I::Product::multiply(*sum, *pair, channels);
@@ -253,7 +364,7 @@ unsafe fn channel_pairs(low: int8x16_t, high: int8x16_t) -> [int8x16_t; 2] {
 /// longer than [`ZERO_ROW`]; `pixels` are tiles of this output; the block's `4 V` channels
 /// from `channel` are inside the output channels.
 #[inline(always)]
-unsafe fn tile_totals<I: MatrixInput, const PAIRS: usize, const V: usize>(
+unsafe fn tile_totals<I: MatrixInput, W: WeightLayout, const PAIRS: usize, const V: usize>(
     shape: &ConvShape,
     input: &I,
     weight: &[i8],
@@ -280,11 +391,12 @@ unsafe fn tile_totals<I: MatrixInput, const PAIRS: usize, const V: usize>(
                 })
             });
             let tap = kernel_y * shape.kernel_width + kernel_x;
-            let weights = weight[shape.int8_index(tap, 0, channel)..].as_ptr();
+            let weights = weight[W::tap_start(shape, tap, channel)..].as_ptr();
             // SAFETY: every source is a row of `quads` whole quads or the zero row, at least
             // as long; the tap's quads of the block are inside `weight`: the caller's
             // promises.
-            sums = unsafe { add_tap::<I, PAIRS, V>(sums, &sources, weights, quads, quad_stride) };
+            sums =
+                unsafe { add_tap::<I, W, PAIRS, V>(sums, &sources, weights, quads, quad_stride) };
         }
     }
     // SAFETY: NEON.
@@ -311,7 +423,7 @@ unsafe fn tile_totals<I: MatrixInput, const PAIRS: usize, const V: usize>(
 /// # Safety
 /// As for [`tile_totals`]; `first` is inside the map.
 #[inline(always)]
-unsafe fn tile<I: MatrixInput, const PAIRS: usize, const V: usize>(
+unsafe fn tile<I: MatrixInput, W: WeightLayout, const PAIRS: usize, const V: usize>(
     shape: &ConvShape,
     input: &I,
     (weight, weight_scales, bias): (&[i8], &[f32], &[f32]),
@@ -326,7 +438,7 @@ unsafe fn tile<I: MatrixInput, const PAIRS: usize, const V: usize>(
         PixelTile::new(shape, start, positions.saturating_sub(start).min(2))
     });
     // SAFETY: the caller's promises.
-    let totals = unsafe { tile_totals::<I, PAIRS, V>(shape, input, weight, &pixels, channel) };
+    let totals = unsafe { tile_totals::<I, W, PAIRS, V>(shape, input, weight, &pixels, channel) };
     let block = channel..channel + V * Lanes::WIDTH;
     let parameters = (&weight_scales[block.clone()], &bias[block]);
     for (pair, (pixels, totals)) in pixels.iter().zip(&totals).enumerate() {
@@ -355,7 +467,7 @@ unsafe fn tile<I: MatrixInput, const PAIRS: usize, const V: usize>(
 /// # Safety
 /// As for [`conv`].
 #[inline(always)]
-unsafe fn channel_blocks<I: MatrixInput, const PAIRS: usize, const V: usize>(
+unsafe fn channel_blocks<I: MatrixInput, W: WeightLayout, const PAIRS: usize, const V: usize>(
     shape: &ConvShape,
     input: &I,
     parameters: (&[i8], &[f32], &[f32]),
@@ -372,7 +484,7 @@ unsafe fn channel_blocks<I: MatrixInput, const PAIRS: usize, const V: usize>(
         // SAFETY (all three): the caller's promises; `first` is inside the map.
         while positions.saturating_sub(first) > 4 * SMALL_PAIRS {
             unsafe {
-                tile::<I, PAIRS, V>(
+                tile::<I, W, PAIRS, V>(
                     shape,
                     input,
                     parameters,
@@ -386,7 +498,7 @@ unsafe fn channel_blocks<I: MatrixInput, const PAIRS: usize, const V: usize>(
         while first < positions {
             unsafe {
                 let at = (first, *channel);
-                tile::<I, SMALL_PAIRS, V>(shape, input, parameters, output, accumulate, at)
+                tile::<I, W, SMALL_PAIRS, V>(shape, input, parameters, output, accumulate, at)
             };
             first += 2 * SMALL_PAIRS;
         }
@@ -394,33 +506,29 @@ unsafe fn channel_blocks<I: MatrixInput, const PAIRS: usize, const V: usize>(
     }
 }
 
-/// The whole convolution on the matrix tiles: blocks of `TILE.1` vectors of channels, then
-/// single vectors, the channels left over (not a multiple of four) on the scalar reference.
+/// The whole convolution on the matrix tiles: blocks of `V` vectors of channels on tiles of
+/// `PAIRS` pixel pairs, then single vectors, the channels left over (not a multiple of four)
+/// on the scalar reference. The tiles read the weights in layout `W` (`layout`: the quads
+/// of `parameters`, or their pairs), the scalar reference the quads.
 ///
 /// # Safety
 /// The CPU has I8MM; the slice lengths are those `shape` implies; rows of whole quads no
 /// longer than [`ZERO_ROW`].
 #[inline(always)]
-unsafe fn conv<I: MatrixInput>(
+unsafe fn conv<I: MatrixInput, W: WeightLayout, const PAIRS: usize, const V: usize>(
     shape: &ConvShape,
     input: &I,
     parameters: (&[i8], &[f32], &[f32]),
+    layout: &[i8],
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
-    const PAIRS: usize = TILE.0;
     let mut channel = 0;
+    let tiles = (layout, parameters.1, parameters.2);
     // SAFETY: this function's contract is theirs.
     unsafe {
-        channel_blocks::<I, PAIRS, { TILE.1 }>(
-            shape,
-            input,
-            parameters,
-            output,
-            accumulate,
-            &mut channel,
-        );
-        channel_blocks::<I, PAIRS, 1>(shape, input, parameters, output, accumulate, &mut channel);
+        channel_blocks::<I, W, PAIRS, V>(shape, input, tiles, output, accumulate, &mut channel);
+        channel_blocks::<I, W, PAIRS, 1>(shape, input, tiles, output, accumulate, &mut channel);
     }
     if channel < shape.out_channels {
         let positions = shape.out_height() * shape.out_width();
@@ -437,8 +545,36 @@ unsafe fn conv<I: MatrixInput>(
     }
 }
 
+/// [`conv`] on the pair layout, functions of their own (their loops apart from the quads'
+/// in the binary, where `benches/arm/mca.sh` finds them by name).
+macro_rules! conv_on_pairs {
+    ($name:ident, $input:ty) => {
+        /// # Safety
+        /// As for [`conv`], `pairs` the pair layout of `parameters`' weights.
+        #[target_feature(enable = "neon,dotprod,i8mm")]
+        #[inline(never)]
+        unsafe fn $name(
+            shape: &ConvShape,
+            input: &$input,
+            parameters: (&[i8], &[f32], &[f32]),
+            pairs: &[i8],
+            output: &mut [f32],
+            accumulate: Accumulate,
+        ) {
+            // SAFETY: this function's contract is `conv`'s.
+            unsafe {
+                conv::<_, Pairs, { PAIRS_TILE.0 }, { PAIRS_TILE.1 }>(
+                    shape, input, parameters, pairs, output, accumulate,
+                )
+            }
+        }
+    };
+}
+conv_on_pairs!(paired_conv_bytes, ByteRows<'_>);
+conv_on_pairs!(paired_conv_signed_bytes, SignedByteRows<'_>);
+
 /// `Kernels::conv_int8_bytes` on `usmmla`, the lengths checked; inputs not in whole quads on
-/// the scalar reference.
+/// the scalar reference. `pairs`: the weights' pair layout, read instead of pairing quads.
 ///
 /// # Safety
 /// The CPU has I8MM.
@@ -447,6 +583,7 @@ pub(crate) unsafe fn checked_conv_bytes(
     shape: &ConvShape,
     input: &ByteRows<'_>,
     parameters: (&[i8], &[f32], &[f32]),
+    pairs: Option<&[i8]>,
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
@@ -455,12 +592,26 @@ pub(crate) unsafe fn checked_conv_bytes(
         return conv_int8_bytes(shape, input, parameters, output, accumulate);
     }
     // SAFETY: I8MM (this function's contract); the lengths were asserted (at most
-    // `MAX_DIGIT_CHANNELS` inputs: rows no longer than the zero row) and the quads checked
-    // just above.
-    unsafe { conv(shape, input, parameters, output, accumulate) }
+    // `MAX_DIGIT_CHANNELS` inputs: rows no longer than the zero row), the pairs' below, and
+    // the quads checked just above.
+    unsafe {
+        match pairs {
+            Some(pairs) => {
+                assert_eq!(pairs.len(), shape.int8_pair_weight_len());
+                paired_conv_bytes(shape, input, parameters, pairs, output, accumulate)
+            }
+            None => {
+                let quads = parameters.0;
+                conv::<_, Quads, { QUADS_TILE.0 }, { QUADS_TILE.1 }>(
+                    shape, input, parameters, quads, output, accumulate,
+                )
+            }
+        }
+    }
 }
 
-/// `Kernels::conv_int8_signed_bytes` on `smmla`, the lengths checked.
+/// `Kernels::conv_int8_signed_bytes` on `smmla`, the lengths checked; `pairs` as for
+/// [`checked_conv_bytes`].
 ///
 /// # Safety
 /// The CPU has I8MM.
@@ -469,12 +620,26 @@ pub(crate) unsafe fn checked_conv_signed_bytes(
     shape: &ConvShape,
     input: &SignedByteRows<'_>,
     parameters: (&[i8], &[f32], &[f32]),
+    pairs: Option<&[i8]>,
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
     assert_signed_byte_lengths(shape, input, parameters, output.len());
     // SAFETY: I8MM (this function's contract); the lengths were asserted (at most
     // `MAX_DIGIT_CHANNELS` inputs, padded to whole quads: rows no longer than the zero row)
-    // just above.
-    unsafe { conv(shape, input, parameters, output, accumulate) }
+    // just above, the pairs' below.
+    unsafe {
+        match pairs {
+            Some(pairs) => {
+                assert_eq!(pairs.len(), shape.int8_pair_weight_len());
+                paired_conv_signed_bytes(shape, input, parameters, pairs, output, accumulate)
+            }
+            None => {
+                let quads = parameters.0;
+                conv::<_, Quads, { QUADS_TILE.0 }, { QUADS_TILE.1 }>(
+                    shape, input, parameters, quads, output, accumulate,
+                )
+            }
+        }
+    }
 }
