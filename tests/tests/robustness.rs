@@ -1505,3 +1505,104 @@ fn assert_tiny_file_runs(bytes: &[u8]) {
     let actions = policy.infer(Noise::Given(&noise)).unwrap();
     assert!(actions.action_pred().iter().all(|a| a.is_finite()));
 }
+
+/// The tiny model's int8 file with every residual-block layer on 8-bit codes, and the same
+/// with the pair layout added as `weights-tool add-pairs` adds it.
+fn narrow_and_paired_files() -> &'static (AlignedBytes, AlignedBytes) {
+    static FILES: OnceLock<(AlignedBytes, AlignedBytes)> = OnceLock::new();
+    FILES.get_or_init(|| {
+        let narrow = scdp_tests::synthetic_narrow_weights_file(&CONFIG, 3).unwrap();
+        let paired = weights_tool::writer::add_weight_pairs(narrow.as_slice()).unwrap();
+        (narrow, aligned_copy(&paired))
+    })
+}
+
+/// Indices of the pair-layout tensors of `bytes`.
+fn pair_tensors(bytes: &[u8]) -> Vec<usize> {
+    let file = WeightsFile::parse(bytes).unwrap();
+    (0..file.tensor_count())
+        .filter(|&index| file.entry(index).unwrap().dtype.is_pairs())
+        .collect()
+}
+
+/// Every 8-bit convolution gets its pair layout right after its scales; the file loads
+/// without allocating and every backend gives the bits it gives without them (on x86 the
+/// backends read the quads; under qemu's `-cpu max`, `simd-bits` checks `i8mm`, which reads
+/// the pairs, against these). Adding them twice changes nothing.
+#[test]
+fn a_file_with_the_pair_layout_loads_and_gives_the_same_bits() {
+    let (narrow, paired) = narrow_and_paired_files();
+    let (narrow, paired) = (narrow.as_slice(), paired.as_slice());
+    let file = WeightsFile::parse(paired).unwrap();
+    let pairs = pair_tensors(paired);
+    let narrow_convolutions = (0..file.tensor_count())
+        .map(|index| file.entry(index).unwrap())
+        .filter(|entry| matches!(entry.dtype, DType::I8Narrow | DType::I8NarrowRefined))
+        .filter(|entry| entry.rank >= 3)
+        .count();
+    assert!(
+        narrow_convolutions > 0,
+        "the narrow file has 8-bit convolutions"
+    );
+    assert_eq!(pairs.len(), narrow_convolutions);
+    for &index in &pairs {
+        let (weight, entry) = (file.entry(index - 2).unwrap(), file.entry(index).unwrap());
+        assert_eq!(entry.name, format!("{}.pairs", weight.name));
+        assert_eq!(entry.dims(), weight.dims());
+    }
+    assert_eq!(load(paired), Ok(()));
+    for backend in available_backends() {
+        assert_eq!(
+            infer_file_on(paired, &STATE, backend),
+            infer_file_on(narrow, &STATE, backend),
+            "{backend:?}"
+        );
+    }
+    let again = weights_tool::writer::add_weight_pairs(paired).unwrap();
+    assert_eq!(again, paired, "pairs added twice");
+}
+
+/// A pair layout where the file has no 8-bit convolution before it, of another weight's
+/// dims, with the wrong number of planes, or in a weight's place is an unexpected tensor;
+/// one whose length is not its dims' is a bad entry.
+#[test]
+fn a_misplaced_or_misshapen_pair_layout_is_rejected() {
+    let (_, paired) = narrow_and_paired_files();
+    let paired = paired.as_slice();
+    let first = pair_tensors(paired)[0];
+    let tensors = || tensors_of(paired);
+    let rebuilt = |tensors: &[Tensor]| rebuild_onto(paired, tensors);
+    // Another layer's dims (the data resized to match them).
+    let mut other = tensors();
+    let later = *pair_tensors(paired)
+        .iter()
+        .find(|&&index| other[index].dims != other[first].dims)
+        .expect("layers of two shapes");
+    other[first].dims = other[later].dims.clone();
+    other[first].data = other[later].data.clone();
+    let unexpected = Err(Error::UnexpectedTensor { index: first });
+    assert_eq!(load(&rebuilt(&other)), unexpected, "another layer's dims");
+    // Two planes for a weight of one.
+    let mut planes = tensors();
+    assert_eq!(planes[first].dtype, DType::I8Pairs as u32);
+    planes[first].dtype = DType::I8RefinedPairs as u32;
+    let doubled = planes[first].data.repeat(2);
+    planes[first].data = doubled;
+    assert_eq!(load(&rebuilt(&planes)), unexpected, "two planes");
+    // Before its weight: the weight's place holds something else.
+    let mut moved = tensors();
+    let pairs = moved.remove(first);
+    moved.insert(first - 2, pairs);
+    let misplaced = Err(Error::UnexpectedTensor { index: first - 2 });
+    assert_eq!(load(&rebuilt(&moved)), misplaced, "in the weight's place");
+    // After a layer on 15-bit codes, which no backend reads in pairs.
+    let mut wide = tensors();
+    wide[first - 2].dtype = DType::I8 as u32;
+    assert_eq!(load(&rebuilt(&wide)), unexpected, "after a 15-bit layer");
+    // Shorter than its dims say.
+    let mut short = tensors();
+    let len = short[first].data.len();
+    short[first].data.truncate(len - 64);
+    let bad = Err(Error::BadTensorEntry { index: first });
+    assert_eq!(load(&rebuilt(&short)), bad, "short");
+}

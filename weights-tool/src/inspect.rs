@@ -20,6 +20,8 @@ pub struct WeightCounts {
     pub wide: usize,
     pub narrow: usize,
     pub refined: usize,
+    /// 8-bit layers whose kernels the file holds in the pair layout too.
+    pub paired: usize,
 }
 
 /// The [`WeightCounts`] of a weights file.
@@ -36,9 +38,10 @@ pub fn weight_counts(bytes: &[u8]) -> Result<WeightCounts> {
         match entry.dtype {
             DType::I8 | DType::I8Refined => counts.wide += 1,
             DType::I8Narrow | DType::I8NarrowRefined => counts.narrow += 1,
+            DType::I8Pairs | DType::I8RefinedPairs => counts.paired += 1,
             DType::F32 => {}
         }
-        counts.refined += usize::from(entry.dtype.is_refined());
+        counts.refined += usize::from(entry.dtype.is_refined() && !entry.dtype.is_pairs());
     }
     Ok(counts)
 }
@@ -109,7 +112,7 @@ pub fn report(bytes: &[u8]) -> Result<String> {
         }
         let refined: Vec<_> = entries
             .iter()
-            .filter(|entry| entry.dtype.is_refined())
+            .filter(|entry| entry.dtype.is_refined() && !entry.dtype.is_pairs())
             .collect();
         writeln!(
             out,
@@ -119,6 +122,14 @@ pub fn report(bytes: &[u8]) -> Result<String> {
         for entry in refined {
             writeln!(out, "  refined  {}", entry.name)?;
         }
+        writeln!(
+            out,
+            "pair layout (`add-pairs`, `convert --weight-pairs`; read by `i8mm`): {} of the 8-bit layers",
+            entries
+                .iter()
+                .filter(|entry| entry.dtype.is_pairs())
+                .count()
+        )?;
         writeln!(out)?;
     }
     writeln!(
@@ -126,15 +137,20 @@ pub fn report(bytes: &[u8]) -> Result<String> {
         "{:<48} {:>5} {:<22} {:>12} {:>12}",
         "tensor", "dtype", "shape", "offset", "bytes"
     )?;
-    let mut parameters = 0usize;
+    let (mut parameters, mut pair_values) = (0usize, 0usize);
     for entry in &entries {
-        parameters += entry.element_count();
+        match entry.dtype.is_pairs() {
+            true => pair_values += entry.element_count(),
+            false => parameters += entry.element_count(),
+        }
         let dtype = match entry.dtype {
             DType::F32 => "f32",
             DType::I8 => "i8",
             DType::I8Narrow => "i8a8",
             DType::I8Refined => "i16",
             DType::I8NarrowRefined => "i16a8",
+            DType::I8Pairs => "i8p",
+            DType::I8RefinedPairs => "i16p",
         };
         writeln!(
             out,
@@ -147,5 +163,8 @@ pub fn report(bytes: &[u8]) -> Result<String> {
         )?;
     }
     writeln!(out, "{parameters} stored values")?;
+    if pair_values > 0 {
+        writeln!(out, "{pair_values} more in the pair layout")?;
+    }
     Ok(out)
 }

@@ -34,6 +34,9 @@ enum Command {
     Convert(ConvertArgs),
     /// Show a weights file's config, storage, arena plan and tensor table.
     Inspect(InspectArgs),
+    /// Add the pair layout to an int8 file's 8-bit layers (as `convert --weight-pairs`
+    /// writes it), for the `i8mm` backend; the same outputs, bit for bit.
+    AddPairs(AddPairsArgs),
     /// Run the engine on a run file (docs/SPEC.md section 8): actions, anchors, optional picture and
     /// latency benchmark.
     Run(RunArgs),
@@ -44,6 +47,16 @@ struct InspectArgs {
     /// Weights file written by `convert`.
     #[arg(value_name = "MODEL.scdp")]
     model: PathBuf,
+}
+
+#[derive(clap::Args)]
+struct AddPairsArgs {
+    /// Int8 weights file written by `convert`.
+    #[arg(value_name = "MODEL.scdp")]
+    model: PathBuf,
+    /// The file with the pair layout.
+    #[arg(short, long, value_name = "OUT.scdp")]
+    output: PathBuf,
 }
 
 #[derive(clap::Args)]
@@ -148,6 +161,12 @@ struct ConvertArgs {
     /// same choices and the same file for any number. Default: every core.
     #[arg(long, value_name = "N", default_value_t = every_core())]
     threads: usize,
+    /// With `--quant int8`: store the 8-bit layers' kernels a second time in eight-input
+    /// groups, the operands of I8MM's matrix multiplies (the `i8mm` backend: Neoverse V1/V2,
+    /// Graviton 3/4, Cortex-A710 on), so it need not pair them as it runs. The same
+    /// outputs, bit for bit; the file grows by those layers' weights (docs/ARM.md).
+    #[arg(long)]
+    weight_pairs: bool,
     /// Output weights file.
     #[arg(short, long, value_name = "MODEL.scdp")]
     output: PathBuf,
@@ -210,6 +229,7 @@ fn main() -> ExitCode {
         Command::Synth(args) => synth(&args),
         Command::Convert(args) => convert(&args),
         Command::Inspect(args) => inspect(&args),
+        Command::AddPairs(args) => add_pairs(&args),
         Command::Run(args) => run(&args),
     };
     match result {
@@ -286,7 +306,7 @@ fn int8_weights_file(
     use weights_tool::activations::{self, Budget};
     use weights_tool::lowering::{self, Rounding};
     use weights_tool::refine;
-    use weights_tool::writer::write_weights_file;
+    use weights_tool::writer::{add_weight_pairs, write_weights_file};
     anyhow::ensure!(
         !scenes.is_empty() || args.rounding == RoundingArg::Nearest,
         INT8_NEEDS_SCENES
@@ -375,7 +395,10 @@ fn int8_weights_file(
         stages.push(("activation widths", started.elapsed()));
     }
     Ok(Int8File {
-        bytes: write_weights_file(config, &stored)?,
+        bytes: match args.weight_pairs {
+            true => add_weight_pairs(&write_weights_file(config, &stored)?)?,
+            false => write_weights_file(config, &stored)?,
+        },
         widths: report,
         refinement,
         stages,
@@ -524,6 +547,10 @@ fn convert(args: &ConvertArgs) -> anyhow::Result<()> {
         scenes.is_empty() || quant == Quant::Int8,
         "calibration scenes only apply to --quant int8"
     );
+    anyhow::ensure!(
+        !args.weight_pairs || quant == Quant::Int8,
+        "--weight-pairs only applies to --quant int8 (f32 files have no 8-bit layers)"
+    );
     let int8 = match quant {
         Quant::F32 => {
             let spinner = spinner("converting to f32");
@@ -614,6 +641,23 @@ fn inspect(args: &InspectArgs) -> anyhow::Result<()> {
     let report =
         weights_tool::inspect::report(&bytes).with_context(|| args.model.display().to_string())?;
     print!("{report}");
+    Ok(())
+}
+
+fn add_pairs(args: &AddPairsArgs) -> anyhow::Result<()> {
+    let bytes = read_file(&args.model)?;
+    let paired = weights_tool::writer::add_weight_pairs(&bytes)
+        .with_context(|| args.model.display().to_string())?;
+    std::fs::write(&args.output, &paired)
+        .with_context(|| format!("writing {}", args.output.display()))?;
+    let counts = weights_tool::inspect::weight_counts(&paired)?;
+    println!(
+        "{}: {} 8-bit layers with the pair layout, {:.1} MB (was {:.1} MB)",
+        args.output.display(),
+        counts.paired,
+        paired.len() as f64 / 1e6,
+        bytes.len() as f64 / 1e6
+    );
     Ok(())
 }
 

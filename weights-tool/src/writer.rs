@@ -99,8 +99,8 @@ fn align(offset: usize) -> usize {
 }
 
 /// One table entry and its data, before offsets are assigned.
-struct Entry<'a> {
-    name: &'a str,
+struct Entry {
+    name: String,
     dims: Vec<usize>,
     dtype: DType,
     bytes: Vec<u8>,
@@ -137,7 +137,7 @@ pub fn write_weights_file(
                     spec.dims
                 );
                 entries.push(Entry {
-                    name: &spec.name,
+                    name: spec.name.clone(),
                     dims: spec.dims.clone(),
                     dtype: DType::F32,
                     bytes: values.iter().flat_map(|v| v.to_le_bytes()).collect(),
@@ -191,7 +191,7 @@ pub fn write_weights_file(
                     count => vec![count, *channels],
                 };
                 entries.push(Entry {
-                    name: &spec.name,
+                    name: spec.name.clone(),
                     dims: spec.dims.clone(),
                     dtype,
                     bytes: planes
@@ -200,7 +200,7 @@ pub fn write_weights_file(
                         .collect(),
                 });
                 entries.push(Entry {
-                    name: scale_name,
+                    name: scale_name.clone(),
                     dims: scale_dims,
                     dtype: DType::F32,
                     bytes: planes
@@ -212,14 +212,21 @@ pub fn write_weights_file(
         }
     }
 
+    let quant = if any_int8 { Quant::Int8 } else { Quant::F32 };
+    serialize(config, quant, &entries)
+}
+
+/// The file of `entries`, in their order: header, config record, table, aligned data,
+/// checksum.
+fn serialize(config: &ModelConfig, quant: Quant, entries: &[Entry]) -> Result<Vec<u8>> {
     let table_offset = HEADER_BYTES + CONFIG_BYTES;
     let mut offset = align(table_offset + entries.len() * ENTRY_BYTES);
     let mut table = Vec::with_capacity(entries.len() * ENTRY_BYTES);
     let mut placements = Vec::with_capacity(entries.len());
-    for entry in &entries {
+    for entry in entries {
         ensure!(
             entry.name.len() <= NAME_BYTES,
-            "internal: name `{}` too long",
+            "tensor name `{}` too long for the file's table",
             entry.name
         );
         let mut row = [0u8; ENTRY_BYTES];
@@ -236,7 +243,6 @@ pub fn write_weights_file(
         offset = align(offset + entry.bytes.len());
     }
     let file_len = offset;
-    let quant = if any_int8 { Quant::Int8 } else { Quant::F32 };
     let mut bytes = vec![0u8; file_len];
     bytes[..8].copy_from_slice(&MAGIC);
     bytes[8..12].copy_from_slice(&VERSION.to_le_bytes());
@@ -256,6 +262,76 @@ pub fn write_weights_file(
     let checksum = format::checksum(&bytes);
     bytes[CHECKSUM_RANGE].copy_from_slice(&checksum.to_le_bytes());
     Ok(bytes)
+}
+
+/// `bytes` (a weights file) with each 8-bit convolution kernel (`DType::I8Narrow`, refined
+/// or not) followed by `NAME.pairs`: its values again in eight-input groups
+/// (`DType::I8Pairs`, docs/FORMAT.md), the operands of I8MM's matrix multiplies as stored.
+/// The quads stay for every other backend; every output keeps its bits. A file that has
+/// them already is returned as it is.
+pub fn add_weight_pairs(bytes: &[u8]) -> Result<Vec<u8>> {
+    use scdp_engine::kernels::PAIR;
+    use scdp_engine::kernels::{int8_convolution, int8_pair_index, int8_pairs, int8_quad_index};
+    let aligned = aligned_copy(bytes);
+    let file = format::WeightsFile::parse(aligned.as_slice())
+        .map_err(|error| anyhow::anyhow!("{error}"))?;
+    let mut entries = Vec::with_capacity(file.tensor_count());
+    let mut index = 0;
+    while index < file.tensor_count() {
+        let entry = file
+            .entry(index)
+            .map_err(|error| anyhow::anyhow!("{error}"))?;
+        if entry.dtype.is_pairs() {
+            return Ok(bytes.to_vec());
+        }
+        let copy = |entry: &format::TensorEntry<'_>| Entry {
+            name: entry.name.to_string(),
+            dims: entry.dims().to_vec(),
+            dtype: entry.dtype,
+            bytes: file.data(entry).to_vec(),
+        };
+        entries.push(copy(&entry));
+        index += 1;
+        let narrow = matches!(entry.dtype, DType::I8Narrow | DType::I8NarrowRefined);
+        let convolution = int8_convolution(entry.dims());
+        let (true, Some((taps, inputs, outputs))) = (narrow, convolution) else {
+            continue;
+        };
+        // The scales come between the weight and its pairs.
+        let scales = file
+            .entry(index)
+            .map_err(|error| anyhow::anyhow!("{error}"))?;
+        entries.push(copy(&scales));
+        index += 1;
+        let quads = file.data(&entry);
+        let plane_len = quads.len() / entry.dtype.size();
+        let pair_len = taps * int8_pairs(inputs) * PAIR * outputs;
+        let mut pairs = vec![0u8; pair_len * entry.dtype.size()];
+        for (quads, pairs) in quads
+            .chunks_exact(plane_len)
+            .zip(pairs.chunks_exact_mut(pair_len))
+        {
+            for tap in 0..taps {
+                for input in 0..inputs {
+                    for output in 0..outputs {
+                        let at = (tap, input, output);
+                        pairs[int8_pair_index(taps, inputs, outputs, at)] =
+                            quads[int8_quad_index(taps, inputs, outputs, at)];
+                    }
+                }
+            }
+        }
+        entries.push(Entry {
+            name: format!("{}.pairs", entry.name),
+            dims: entry.dims().to_vec(),
+            dtype: match entry.dtype.is_refined() {
+                true => DType::I8RefinedPairs,
+                false => DType::I8Pairs,
+            },
+            bytes: pairs,
+        });
+    }
+    serialize(file.config(), file.quant(), &entries)
 }
 
 /// Copies `bytes` into a 64-byte aligned buffer, as the engine requires (a `Vec<u8>` only

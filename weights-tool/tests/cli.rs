@@ -567,7 +567,7 @@ fn convert_calibrates_int8_rounding_on_scenes() {
     let narrow_args = [&int8[..], &scenes[..], &["--activations", "narrow"]].concat();
     let output = convert(&narrow_args, &narrow);
     assert!(output.status.success(), "{}", text(&output.stderr));
-    for (file, eight_bit) in [(path("wide.scdp"), 0), (narrow, 43)] {
+    for (file, eight_bit) in [(path("wide.scdp"), 0), (narrow.clone(), 43)] {
         assert_inspect_lists(
             &file,
             &format!("{eight_bit} on 8-bit codes"),
@@ -575,6 +575,40 @@ fn convert_calibrates_int8_rounding_on_scenes() {
             eight_bit,
         );
     }
+
+    // The pair layout: `convert --weight-pairs` writes what `add-pairs` adds to the file
+    // without it, one `.pairs` tensor for each 8-bit layer (all 43 are convolutions).
+    let paired = path("paired.scdp");
+    let paired_args = [&narrow_args[..], &["--weight-pairs"]].concat();
+    let output = convert(&paired_args, &paired);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    let added = path("added.scdp");
+    let output = tool(&["add-pairs", &narrow, "-o", &added]);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    assert!(text(&output.stdout).contains("43 8-bit layers with the pair layout"));
+    let paired_bytes = std::fs::read(&paired).unwrap();
+    assert!(
+        std::fs::read(&added).unwrap() == paired_bytes,
+        "add-pairs wrote other bytes"
+    );
+    assert!(paired_bytes.len() > std::fs::read(&narrow).unwrap().len());
+    assert_inspect_lists(
+        &paired,
+        "read by `i8mm`): 43 of the 8-bit layers",
+        "  8-bit",
+        43,
+    );
+    let report = text(&tool(&["inspect", &paired]).stdout);
+    assert_eq!(
+        report
+            .lines()
+            .filter(|line| line.contains(".pairs "))
+            .count(),
+        43
+    );
+    let f32_paired = convert(&["--weight-pairs"], &path("z.scdp"));
+    assert!(!f32_paired.status.success());
+    assert!(text(&f32_paired.stderr).contains("only applies to --quant int8"));
 
     // `inspect` lists the refined layers: as many as `convert` chose, none with `--refine
     // none`, the trunk's 19 with `--refine trunk`.

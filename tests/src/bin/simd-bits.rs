@@ -6,7 +6,8 @@
 //!
 //! Cases: every golden fixture with the round-to-nearest int8 weights of its checkpoint and
 //! with its f32 weights, and every recorded observation of the trained Meta-World policies
-//! with their int8 file.
+//! with their int8 file, as shipped and with the pair layout added (`add-pairs`: the `i8mm`
+//! backend reads it, the others the quads; one case, so one digest either way).
 //!
 //! `cargo run --release -p scdp-tests --bin simd-bits [-- [--quick] [--int8 | --f32]
 //! [BACKEND...]]`: every backend this CPU runs, or only the BACKENDs named; `--quick` (CI
@@ -103,8 +104,9 @@ fn main() -> Result<()> {
         if quick {
             observations.truncate(1);
         }
-        for &backend in &backends {
-            let mut runner = Runner::with_kernels(&weights, backend.name())?;
+        let paired = weights_tool::writer::add_weight_pairs(&weights)?;
+        for (&backend, weights) in backends.iter().flat_map(|b| [(b, &weights), (b, &paired)]) {
+            let mut runner = Runner::with_kernels(weights, backend.name())?;
             for observation in &observations {
                 let inputs = RunInputs::load(observation, &config)?;
                 let (outputs, _) = runner.run(&inputs, 0)?;
