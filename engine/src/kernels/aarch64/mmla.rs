@@ -15,7 +15,9 @@
 //! registers) is the most the registers hold: 24 multiplies in 34 instructions, 70.6% of
 //! the multiplies' peak, against the dot products' 50%. Where the file holds the weights in
 //! the pair layout as well (eight inputs a group, `crate::shape::int8_pair_index`), each
-//! channel pair is one plain load and the zips go: 24 multiplies in 30 instructions, 80%.
+//! channel pair is one plain load, off those pipes, so the tile turns to fewer pixels and
+//! more channels: 3 pairs by 4 vectors (6 pixels by 16 channels) is 24 multiplies and 3
+//! lane loads, 89% of the peak on the pipes (llvm-mca's schedule: 79-83%, benches/README.md).
 //!
 //! The sums are exact integers as the dot products' are, so every output has the same bits
 //! as on every other backend.
