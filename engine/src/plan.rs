@@ -24,6 +24,11 @@ use crate::kernels::CodeRows;
 
 const FLOATS_PER_LINE: usize = ALIGN / 4;
 
+/// The trunk maps whose convolutions may be cut by output channels ([`ArenaPlan::trunk_split`]):
+/// at most four of AMX's 16-pixel tiles, so two workers' bands of rows would hold two tiles
+/// or fewer, and five workers' less than one.
+pub const SMALL_MAP_PIXELS: usize = 64;
+
 /// Lengths, in f32 values, of every buffer. The arena is carved in the order of the fields.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ArenaPlan {
@@ -64,6 +69,11 @@ pub struct ArenaPlan {
     /// the stem's output overlaps the other three (they are not live yet).
     pub trunk_activation: usize,
     pub trunk_stem: usize,
+    /// Trunk phase too: the outputs of a convolution of a small map (at most
+    /// [`SMALL_MAP_PIXELS`]) cut by output channels over several workers, where bands of
+    /// its rows would hold fewer pixels than the kernels compute at once
+    /// ([`crate::kernels::Kernels::int8_pixel_block`]).
+    pub trunk_split: usize,
     /// Denoising phase: four work buffers and the two skips the up path reads.
     pub unet_work: usize,
     pub unet_skips: [usize; UNET_LEVELS - 1],
@@ -102,6 +112,7 @@ impl ArenaPlan {
             scratch: saturate(plan.scratch),
             trunk_activation: saturate(plan.trunk_activation),
             trunk_stem: saturate(plan.trunk_stem),
+            trunk_split: saturate(plan.trunk_split),
             unet_work: saturate(plan.unet_work),
             unet_skips: [saturate(plan.unet_skips[0]), saturate(plan.unet_skips[1])],
             unet_split: saturate(plan.unet_split),
@@ -224,6 +235,7 @@ struct Lengths {
     scratch: u64,
     trunk_activation: u64,
     trunk_stem: u64,
+    trunk_split: u64,
     unet_work: u64,
     unet_skips: [u64; UNET_LEVELS - 1],
     unet_split: u64,
@@ -261,11 +273,15 @@ impl Lengths {
         let stem = stem_height as u64 * stem_width as u64 * config.stage_channels(0) as u64;
         let mut largest_activation = image;
         let mut trunk_naive = image + stem;
+        let mut small_map = 0;
         let mut stage = 0;
         while stage < 4 {
             let (height, width) = config.pyramid_size(stage + 1);
             let activation = height as u64 * width as u64 * config.stage_channels(stage) as u64;
             largest_activation = max(largest_activation, activation);
+            if height as u64 * width as u64 <= SMALL_MAP_PIXELS as u64 {
+                small_map = max(small_map, activation);
+            }
             // Without reuse: each block's two convolutions (+ shortcut for the first block
             // of stages 2-4) and the max pool output have buffers of their own.
             let per_stage = if stage == 0 { 5 } else { 6 };
@@ -280,7 +296,8 @@ impl Lengths {
         largest_activation = max(largest_activation, padded_image);
         let trunk_activation = aligned(largest_activation);
         let trunk_stem = aligned(stem);
-        let trunk = trunk_activation + max(trunk_stem, 3 * trunk_activation);
+        let trunk_split = aligned(small_map);
+        let trunk = trunk_activation + max(trunk_stem, 3 * trunk_activation) + trunk_split;
 
         // Denoiser: the widest activation is an up block's concatenated input.
         let unet_work = aligned(horizon * 2 * widest);
@@ -336,6 +353,7 @@ impl Lengths {
             scratch,
             trunk_activation,
             trunk_stem,
+            trunk_split,
             unet_work,
             unet_skips,
             unet_split,

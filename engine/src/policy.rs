@@ -342,10 +342,15 @@ impl<'w, 'a> Policy<'w, 'a> {
         let weights = self.model.weights();
         let plan = self.plan;
         let buffers = self.buffers();
-        // The trunk's calls are cut by rows, which needs no scratch.
-        let split = Split::new(kernels, workers, &mut []);
+        // The trunk's calls are cut by rows; those of its small maps by output channels
+        // where a band of rows would hold less than the kernels compute at once, with
+        // their outputs at the end of the scratch.
+        let (scratch, split_scratch) = buffers
+            .scratch
+            .split_at_mut(plan.scratch - plan.trunk_split);
+        let split = Split::new(kernels, workers, split_scratch);
         let kernels: &dyn Kernels = if workers.count() > 1 { &split } else { kernels };
-        let (first, rest) = buffers.scratch.split_at_mut(plan.trunk_activation);
+        let (first, rest) = scratch.split_at_mut(plan.trunk_activation);
         frame::check_size(&config, image)?;
         let mut store = FrameStore::new(
             &mut buffers.features[slot * frame_len..][..frame_len],

@@ -569,6 +569,13 @@ pub trait Kernels: Sync {
         ops::quantize_rows_narrow_codes(input, (row_len, row_stride), codes)
     }
 
+    /// Output pixels this implementation's int8 convolutions of 2-D maps compute at once
+    /// (AMX: a tile's 16 rows): a piece of a call cut by output rows that holds fewer still
+    /// computes a whole run, so [`Split`] cuts such maps by output channels instead.
+    fn int8_pixel_block(&self) -> usize {
+        1
+    }
+
     /// Whether this implementation multiplies the U-Net's narrow codes fastest as signed
     /// bytes ([`conv_int8_signed_bytes`](Self::conv_int8_signed_bytes), the default) or
     /// widened to 16 bits once, as they are quantized

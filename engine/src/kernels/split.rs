@@ -231,14 +231,24 @@ impl<'s> Split<'s> {
     /// A 1-D int8 convolution (`run` the kernel on its input) cut into blocks of output
     /// channels ([`Self::split_channels`]), each block's weights, scales and biases its own
     /// run of the layer's ([`channel_block`]); run whole when it is not cut.
-    fn int8_by_channels(
+    /// Whether cutting a 2-D map's output rows over the workers would leave a band with
+    /// fewer output pixels than the kernels' int8 convolutions compute at once.
+    fn bands_below_block(&self, shape: &ConvShape) -> bool {
+        let pieces = self.workers.count().max(1);
+        shape.in_height > 1
+            && shape.out_height() / pieces * shape.out_width() < self.kernels.int8_pixel_block()
+    }
+
+    /// [`Split::int8_by_channels`] where it can cut the call; `false` (nothing run) where
+    /// not.
+    fn int8_by_channels_cut(
         &self,
         shape: &ConvShape,
         parameters: Int8Parameters<'_>,
         output: &mut [f32],
         accumulate: Accumulate,
         run: &Int8Run<'_>,
-    ) {
+    ) -> bool {
         let block = |channels: Range<usize>, output: &mut [f32]| {
             let (part, parameters) = channel_block(shape, parameters, channels.clone());
             run(&part, parameters, channels, output, Accumulate::Overwrite);
@@ -248,9 +258,19 @@ impl<'s> Split<'s> {
             Accumulate::Overwrite => Store::Overwrite,
             Accumulate::Add => Store::Add,
         };
-        let cut = int8_lengths_hold(shape, parameters)
-            && self.split_channels(shape, shape.int8_weight_len(), output, store, &block);
-        if !cut {
+        int8_lengths_hold(shape, parameters)
+            && self.split_channels(shape, shape.int8_weight_len(), output, store, &block)
+    }
+
+    fn int8_by_channels(
+        &self,
+        shape: &ConvShape,
+        parameters: Int8Parameters<'_>,
+        output: &mut [f32],
+        accumulate: Accumulate,
+        run: &Int8Run<'_>,
+    ) {
+        if !self.int8_by_channels_cut(shape, parameters, output, accumulate, run) {
             run(shape, parameters, 0..shape.out_channels, output, accumulate)
         }
     }
@@ -267,6 +287,26 @@ impl<'s> Split<'s> {
         accumulate: Accumulate,
     ) {
         let kernels = self.kernels;
+        if self.bands_below_block(shape) {
+            let per_channel = shape.int8_pair_weight_len() / shape.out_channels.max(1);
+            let by_channels = |part: &ConvShape,
+                               (weight, scales, bias): Int8Parameters<'_>,
+                               channels: Range<usize>,
+                               output: &mut [f32],
+                               accumulate| match pairs {
+                Some(pairs) if pairs.len() == shape.int8_pair_weight_len() => {
+                    let pairs = &pairs[channels.start * per_channel..channels.end * per_channel];
+                    kernels.conv_int8_bytes_paired(
+                        part, input, weight, pairs, scales, bias, output, accumulate,
+                    )
+                }
+                _ => kernels.conv_int8_bytes(part, input, weight, scales, bias, output, accumulate),
+            };
+            let parameters = (weight, scales, bias);
+            if self.int8_by_channels_cut(shape, parameters, output, accumulate, &by_channels) {
+                return;
+            }
+        }
         let run = |shape: &ConvShape, input: &ByteRows<'_>, output: &mut [f32]| match pairs {
             Some(pairs) => kernels.conv_int8_bytes_paired(
                 shape, input, weight, pairs, scales, bias, output, accumulate,
@@ -496,6 +536,19 @@ impl Kernels for Split<'_> {
         accumulate: Accumulate,
     ) {
         let kernels = self.kernels;
+        if self.bands_below_block(shape) {
+            let run = |part: &ConvShape,
+                       (weight, scales, bias): Int8Parameters<'_>,
+                       _: Range<usize>,
+                       output: &mut [f32],
+                       accumulate| {
+                kernels.conv_int8(part, input, weight, scales, bias, output, accumulate)
+            };
+            let parameters = (weight, weight_scales, bias);
+            if self.int8_by_channels_cut(shape, parameters, output, accumulate, &run) {
+                return;
+            }
+        }
         let band = |part: &ConvShape, inputs: Range<usize>, output: &mut [f32]| {
             let digits = DigitRows {
                 high: &input.high[inputs.clone()],

@@ -265,6 +265,10 @@ impl Kernels for Amx {
         "amx"
     }
 
+    fn int8_pixel_block(&self) -> usize {
+        BLOCK_PIXELS
+    }
+
     fn conv(
         &self,
         shape: &ConvShape,
