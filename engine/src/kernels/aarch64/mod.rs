@@ -69,19 +69,11 @@ pub(crate) mod int8 {
     pub(crate) use super::int8_lanes::DotQ as SignedBytes;
 }
 
-/// The dot-product extension (`sdot`, FEAT_DotProd) is present: asked of the OS (builds
-/// without std read the ID registers, below).
+// Hosted builds ask the OS (`os`); firmware reads the ID registers (below).
 #[cfg(feature = "std")]
-pub fn has_dotprod() -> bool {
-    std::arch::is_aarch64_feature_detected!("dotprod")
-}
-
-/// The int8 matrix multiply extension (`usdot`, `smmla`, FEAT_I8MM) is present, and the
-/// dot product: asked of the OS.
+mod os;
 #[cfg(feature = "std")]
-pub fn has_i8mm() -> bool {
-    std::arch::is_aarch64_feature_detected!("i8mm") && has_dotprod()
-}
+pub use os::{has_dotprod, has_i8mm};
 
 /// The dot-product extension (`sdot`, FEAT_DotProd) is present: ID_AA64ISAR0_EL1.DP, bits
 /// 47:44, is 1 or more.
