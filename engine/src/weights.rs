@@ -148,11 +148,8 @@ impl<'w> FileSource<'w> {
     ) -> Result<(usize, TensorEntry<'w>), Error> {
         let index = self.next;
         let entry = self.file.entry(index)?;
-        let unexpected = Error::UnexpectedTensor { index };
-        let mut expected_name = heapless::String::<64>::new();
-        expected_name.write_fmt(name).map_err(|_| unexpected)?;
-        if entry.name != expected_name.as_str() || entry.dims() != dims {
-            return Err(unexpected);
+        if !named(&entry, name, index)? || entry.dims() != dims {
+            return Err(Error::UnexpectedTensor { index });
         }
         self.next += 1;
         Ok((index, entry))
@@ -164,6 +161,16 @@ impl<'w> FileSource<'w> {
         }
         bytemuck::try_cast_slice(self.file.data(entry)).map_err(|_| Error::BadTensorEntry { index })
     }
+}
+
+/// Whether `entry` (table row `index`) is named `name`; a name too long for the table is
+/// an unexpected tensor there.
+fn named(entry: &TensorEntry<'_>, name: fmt::Arguments<'_>, index: usize) -> Result<bool, Error> {
+    let mut expected = heapless::String::<64>::new();
+    expected
+        .write_fmt(name)
+        .map_err(|_| Error::UnexpectedTensor { index })?;
+    Ok(entry.name == expected.as_str())
 }
 
 impl<'w> FileSource<'w> {
@@ -181,12 +188,8 @@ impl<'w> FileSource<'w> {
             return Ok(None);
         }
         let entry = self.file.entry(index)?;
-        let mut pairs_name = heapless::String::<64>::new();
         let unexpected = Error::UnexpectedTensor { index };
-        pairs_name
-            .write_fmt(format_args!("{name}.pairs"))
-            .map_err(|_| unexpected)?;
-        if entry.name != pairs_name.as_str() {
+        if !named(&entry, format_args!("{name}.pairs"), index)? {
             return Ok(None);
         }
         let expected = match dtype {

@@ -228,9 +228,6 @@ impl<'s> Split<'s> {
         done == pieces
     }
 
-    /// A 1-D int8 convolution (`run` the kernel on its input) cut into blocks of output
-    /// channels ([`Self::split_channels`]), each block's weights, scales and biases its own
-    /// run of the layer's ([`channel_block`]); run whole when it is not cut.
     /// Whether cutting a 2-D map's output rows over the workers would leave a band with
     /// fewer output pixels than the kernels' int8 convolutions compute at once.
     fn bands_below_block(&self, shape: &ConvShape) -> bool {
@@ -262,6 +259,9 @@ impl<'s> Split<'s> {
             && self.split_channels(shape, shape.int8_weight_len(), output, store, &block)
     }
 
+    /// A 1-D int8 convolution (`run` the kernel on its input) cut into blocks of output
+    /// channels ([`Self::split_channels`]), each block's weights, scales and biases its own
+    /// run of the layer's ([`channel_block`]); run whole when it is not cut.
     fn int8_by_channels(
         &self,
         shape: &ConvShape,
@@ -288,19 +288,24 @@ impl<'s> Split<'s> {
     ) {
         let kernels = self.kernels;
         if self.bands_below_block(shape) {
-            let per_channel = shape.int8_pair_weight_len() / shape.out_channels.max(1);
             let by_channels = |part: &ConvShape,
                                (weight, scales, bias): Int8Parameters<'_>,
                                channels: Range<usize>,
                                output: &mut [f32],
                                accumulate| match pairs {
-                Some(pairs) if pairs.len() == shape.int8_pair_weight_len() => {
-                    let pairs = &pairs[channels.start * per_channel..channels.end * per_channel];
-                    kernels.conv_int8_bytes_paired(
-                        part, input, weight, pairs, scales, bias, output, accumulate,
-                    )
+                Some(pairs) => kernels.conv_int8_bytes_paired(
+                    part,
+                    input,
+                    weight,
+                    pairs_block(shape, pairs, channels),
+                    scales,
+                    bias,
+                    output,
+                    accumulate,
+                ),
+                None => {
+                    kernels.conv_int8_bytes(part, input, weight, scales, bias, output, accumulate)
                 }
-                _ => kernels.conv_int8_bytes(part, input, weight, scales, bias, output, accumulate),
             };
             let parameters = (weight, scales, bias);
             if self.int8_by_channels_cut(shape, parameters, output, accumulate, &by_channels) {
@@ -364,6 +369,18 @@ fn channel_block<'p>(
     };
     let weights = &weight[channels.start * per_channel..channels.end * per_channel];
     (part, (weights, &scales[channels.clone()], &bias[channels]))
+}
+
+/// The pair layout of output channels `channels` (starting at a block) of an int8
+/// convolution: it keeps the quads' blocks of channels, so a run of whole blocks is one run
+/// of pairs too. Pairs of another length than the shape's are handed on whole, for the
+/// kernel to refuse.
+fn pairs_block<'p>(shape: &ConvShape, pairs: &'p [i8], channels: Range<usize>) -> &'p [i8] {
+    if pairs.len() != shape.int8_pair_weight_len() {
+        return pairs;
+    }
+    let per_channel = shape.int8_pair_weight_len() / shape.out_channels.max(1);
+    &pairs[channels.start * per_channel..channels.end * per_channel]
 }
 
 /// Whether an int8 convolution's parameters are as long as its shape says (the kernels
@@ -664,19 +681,12 @@ impl Kernels for Split<'_> {
         accumulate: Accumulate,
     ) {
         let kernels = self.kernels;
-        // The pair layout keeps the quads' blocks of channels, so a run of whole blocks is
-        // one run of pairs too.
-        let per_channel = shape.int8_pair_weight_len() / shape.out_channels.max(1);
-        let whole = pairs.len() == shape.int8_pair_weight_len();
         let run = |part: &ConvShape,
                    (weight, scales, bias): Int8Parameters<'_>,
                    channels: Range<usize>,
                    output: &mut [f32],
                    accumulate| {
-            let pairs = match whole {
-                true => &pairs[channels.start * per_channel..channels.end * per_channel],
-                false => pairs,
-            };
+            let pairs = pairs_block(shape, pairs, channels);
             kernels.conv_int8_signed_bytes_paired(
                 part, input, weight, pairs, scales, bias, output, accumulate,
             )
