@@ -24,27 +24,43 @@ const SPIN: Duration = Duration::from_micros(500);
 /// many pieces it has.
 type Job = (*const (dyn Fn(usize) + Sync), usize);
 
+/// A value on cache lines of its own, so that writing it does not take the others' lines
+/// from the threads reading those: a call's cost is its lines' trips between cores
+/// (`benches/benches/pool.rs`). 128 bytes, as Intel cores fetch lines in pairs.
+#[repr(align(128))]
+struct Line<T>(T);
+
+impl<T> core::ops::Deref for Line<T> {
+    type Target = T;
+
+    fn deref(&self) -> &T {
+        &self.0
+    }
+}
+
 struct Shared {
-    /// Bumped by each call: wakes the threads.
+    /// Bumped by each call: wakes the threads. Beside it the rest of what a call publishes
+    /// (`job`, `open`, `panicked`) and what never changes during one (`stop`, `count`),
+    /// so a thread that sees the bump reads them from the line it just fetched.
     generation: AtomicUsize,
     job: UnsafeCell<Option<Job>>,
     /// Whether the job may be entered: set once a call has written it, cleared when the
     /// call returns.
     open: AtomicBool,
-    /// Threads (not counting the caller) inside a call: from before they look at `open`
-    /// until they have stopped taking pieces. The job is not rewritten while one is.
-    entered: AtomicUsize,
-    /// The next piece of the current call nobody has taken: each worker, the caller
-    /// included, takes pieces until none is left, so a worker that starts late or runs
-    /// slower (its inputs in the other core's cache) takes fewer, and one that does not
-    /// start at all takes none.
-    next: AtomicUsize,
-    /// Pieces of the current call that have returned.
-    done: AtomicUsize,
     panicked: AtomicBool,
     stop: AtomicBool,
     /// Workers, the caller included.
     count: usize,
+    /// Threads (not counting the caller) inside a call: from before they look at `open`
+    /// until they have stopped taking pieces. The job is not rewritten while one is.
+    entered: Line<AtomicUsize>,
+    /// The next piece of the current call nobody has taken: each worker, the caller
+    /// included, takes pieces until none is left, so a worker that starts late or runs
+    /// slower (its inputs in the other core's cache) takes fewer, and one that does not
+    /// start at all takes none.
+    next: Line<AtomicUsize>,
+    /// Pieces of the current call that have returned.
+    done: Line<AtomicUsize>,
 }
 
 // SAFETY: `job` is written only by the caller of `run`, holding `ThreadPool::calls`, while
@@ -85,9 +101,9 @@ impl ThreadPool {
             generation: AtomicUsize::new(0),
             job: UnsafeCell::new(None),
             open: AtomicBool::new(false),
-            entered: AtomicUsize::new(0),
-            next: AtomicUsize::new(0),
-            done: AtomicUsize::new(0),
+            entered: Line(AtomicUsize::new(0)),
+            next: Line(AtomicUsize::new(0)),
+            done: Line(AtomicUsize::new(0)),
             panicked: AtomicBool::new(false),
             stop: AtomicBool::new(false),
             count,
