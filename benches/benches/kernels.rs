@@ -2,13 +2,16 @@
 //! every SIMD backend this CPU runs: int8 (`conv_int8/...`) and f32 (`conv_f32/...`, the stem
 //! and two 3x3 layers): `cargo bench -p scdp-benches --bench kernels`. Criterion reports the
 //! throughput in MACs a second (elements = MACs, taps on the padding included as in
-//! `--bin macs`), to set against the peak rates of `--bench peak`.
+//! `--bin macs`), to set against the peak rates of `--bench peak`. Also the GroupNorm and
+//! Mish after each of the U-Net's convolutions (`group_norm/...`, elements = values), which
+//! run on the calling core between the split convolutions.
 
 use std::hint::black_box;
 use std::time::Duration;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use scdp_engine::Backend;
+use scdp_engine::kernels::ops::Activation;
 use scdp_engine::kernels::{
     Accumulate, ByteRows, ConvShape, DigitRows, Kernels, pack_int8_quads, select,
 };
@@ -193,5 +196,43 @@ fn macs(shape: &ConvShape) -> u64 {
         * shape.out_channels) as u64
 }
 
-criterion_group!(kernels, benches, f32_benches);
+/// GroupNorm (8 groups) then Mish on the U-Net's activations: `[positions, channels]` of
+/// metaworld's levels (horizon 16).
+fn norm_benches(c: &mut Criterion) {
+    let mut rng = Lcg(13);
+    for (positions, channels) in [(16, 128), (8, 256), (4, 384)] {
+        let values: Vec<f32> = (0..positions * channels)
+            .map(|_| (rng.next() % 2001) as f32 / 1000.0 - 1.0)
+            .collect();
+        let gamma = vec![1.1f32; channels];
+        let beta = vec![0.1f32; channels];
+        let mut data = values.clone();
+        let mut group = c.benchmark_group(format!("group_norm/{positions}x{channels} mish"));
+        group
+            .sample_size(20)
+            .warm_up_time(Duration::from_millis(500))
+            .measurement_time(Duration::from_secs(2))
+            .throughput(Throughput::Elements(values.len() as u64));
+        for backend in [Backend::Avx2, Backend::Avx512] {
+            let Some(kernels) = select(backend) else {
+                continue;
+            };
+            group.bench_function(kernels.name(), |b| {
+                b.iter(|| {
+                    data.copy_from_slice(&values);
+                    kernels.group_norm(
+                        black_box(&mut data),
+                        channels,
+                        8,
+                        (&gamma, &beta),
+                        Activation::Mish,
+                    )
+                })
+            });
+        }
+        group.finish();
+    }
+}
+
+criterion_group!(kernels, benches, f32_benches, norm_benches);
 criterion_main!(kernels);
