@@ -189,3 +189,10 @@ def test_the_documented_latency_table_is_the_shipped_results():
     table = metaworld.latency_table(sorted(root.glob("tests/fixtures/trained/**/latency.jsonl")))
     documented = (root / "docs" / "METAWORLD.md").read_text()
     assert table in documented
+
+
+def test_the_documented_runtime_comparison_is_the_shipped_results():
+    root = Path(__file__).resolve().parents[2]
+    folder = root / "tests" / "fixtures" / "trained" / "metaworld-push-v3" / "prefix-trained"
+    table = metaworld.compare_table(folder / "latency-runtimes.json")
+    assert table in (root / "docs" / "METAWORLD.md").read_text()
