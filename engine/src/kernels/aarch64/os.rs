@@ -1,5 +1,7 @@
-//! The CPU's extensions as the OS reports them, for hosted builds: this module is declared
-//! behind the engine's `std` feature; firmware reads the ID registers instead.
+//! The CPU's extensions as the OS reports them, for hosted builds only (the engine's `std`
+//! feature); firmware reads the ID registers instead.
+
+#![cfg(feature = "std")]
 
 /// The dot-product extension (`sdot`, FEAT_DotProd) is present.
 pub fn has_dotprod() -> bool {
