@@ -91,7 +91,7 @@ fn benches(c: &mut Criterion) {
         let bias = vec![0.5f32; shape.out_channels];
         let mut output = vec![0.0f32; shape.output_len()];
         let input = DigitRows::from_planes(values, 0.01, true);
-        on_every_backend(c, format!("conv_int8/{name}"), &shape, |kernels| {
+        on_every_backend(c, format!("conv_int8/{name}"), macs(&shape), |kernels| {
             kernels.conv_int8(
                 &shape,
                 black_box(&input),
@@ -108,25 +108,31 @@ fn benches(c: &mut Criterion) {
             bytes: &planes.as_slice()[..shape.input_len()],
             scale: 0.01,
         };
-        on_every_backend(c, format!("conv_int8_bytes/{name}"), &shape, |kernels| {
-            kernels.conv_int8_bytes(
-                &shape,
-                black_box(&bytes),
-                packed,
-                &weight_scales,
-                &bias,
-                &mut output,
-                Accumulate::Overwrite,
-            )
-        });
+        on_every_backend(
+            c,
+            format!("conv_int8_bytes/{name}"),
+            macs(&shape),
+            |kernels| {
+                kernels.conv_int8_bytes(
+                    &shape,
+                    black_box(&bytes),
+                    packed,
+                    &weight_scales,
+                    &bias,
+                    &mut output,
+                    Accumulate::Overwrite,
+                )
+            },
+        );
     }
 }
 
-/// Times `run` on each SIMD backend this CPU has, as the group `name`, throughput in MACs.
+/// Times `run` on each SIMD backend this CPU has, as the group `name`, throughput in
+/// `elements` (MACs for a convolution).
 fn on_every_backend(
     c: &mut Criterion,
     name: String,
-    shape: &ConvShape,
+    elements: u64,
     mut run: impl FnMut(&dyn Kernels),
 ) {
     let mut group = c.benchmark_group(name);
@@ -134,7 +140,7 @@ fn on_every_backend(
         .sample_size(20)
         .warm_up_time(Duration::from_millis(500))
         .measurement_time(Duration::from_secs(2))
-        .throughput(Throughput::Elements(macs(shape)));
+        .throughput(Throughput::Elements(elements));
     for backend in [Backend::Avx2, Backend::Avx512, Backend::Amx] {
         let Some(kernels) = select(backend) else {
             continue;
@@ -173,7 +179,7 @@ fn f32_benches(c: &mut Criterion) {
         let weight: &[f32] = bytemuck::cast_slice(weight.as_slice());
         let bias = vec![0.5f32; shape.out_channels];
         let mut output = vec![0.0f32; shape.output_len()];
-        on_every_backend(c, format!("conv_f32/{name}"), &shape, |kernels| {
+        on_every_backend(c, format!("conv_f32/{name}"), macs(&shape), |kernels| {
             kernels.conv(
                 &shape,
                 black_box(input),
@@ -207,30 +213,17 @@ fn norm_benches(c: &mut Criterion) {
         let gamma = vec![1.1f32; channels];
         let beta = vec![0.1f32; channels];
         let mut data = values.clone();
-        let mut group = c.benchmark_group(format!("group_norm/{positions}x{channels} mish"));
-        group
-            .sample_size(20)
-            .warm_up_time(Duration::from_millis(500))
-            .measurement_time(Duration::from_secs(2))
-            .throughput(Throughput::Elements(values.len() as u64));
-        for backend in [Backend::Avx2, Backend::Avx512] {
-            let Some(kernels) = select(backend) else {
-                continue;
-            };
-            group.bench_function(kernels.name(), |b| {
-                b.iter(|| {
-                    data.copy_from_slice(&values);
-                    kernels.group_norm(
-                        black_box(&mut data),
-                        channels,
-                        8,
-                        (&gamma, &beta),
-                        Activation::Mish,
-                    )
-                })
-            });
-        }
-        group.finish();
+        let name = format!("group_norm/{positions}x{channels} mish");
+        on_every_backend(c, name, values.len() as u64, |kernels| {
+            data.copy_from_slice(&values);
+            kernels.group_norm(
+                black_box(&mut data),
+                channels,
+                8,
+                (&gamma, &beta),
+                Activation::Mish,
+            )
+        });
     }
 }
 

@@ -41,7 +41,7 @@ impl<T> core::ops::Deref for Line<T> {
 struct Shared {
     /// Bumped by each call: wakes the threads. Beside it the rest of what a call publishes
     /// (`job`, `open`, `panicked`) and what never changes during one (`stop`, `count`),
-    /// so a thread that sees the bump reads them from the line it just fetched.
+    /// so a thread that sees the bump reads them from the lines it just fetched.
     generation: AtomicUsize,
     job: UnsafeCell<Option<Job>>,
     /// Whether the job may be entered: set once a call has written it, cleared when the
