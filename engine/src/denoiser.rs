@@ -3,9 +3,11 @@
 
 use crate::config::{FINAL_BLOCK_GROUPS, ModelConfig, UNET_LEVELS};
 use crate::kernels::ops::{self, Activation};
-use crate::kernels::{Accumulate, ConvShape, Kernels, QuantizeScratch};
+use crate::kernels::{
+    Accumulate, CodeRows, ConvShape, Epilogue, Film, FilmWeights, Kernels, QuantizeScratch,
+};
 use crate::layer::{self, Activations};
-use crate::weights::{Conv, DenoiserWeights, Norm, ResidualBlock, UPSAMPLE_TAPS};
+use crate::weights::{Conv, DenoiserWeights, Norm, ResidualBlock, UPSAMPLE_TAPS, Weight};
 
 /// The U-Net's buffers (lengths from the arena plan).
 pub struct DenoiserScratch<'a> {
@@ -16,6 +18,8 @@ pub struct DenoiserScratch<'a> {
     pub film: &'a mut [f32],
     /// A convolution's input quantized for int8 weights.
     pub quantized: QuantizeScratch<'a>,
+    /// The FiLM layers' input quantized for int8 weights, once a step.
+    pub cond_codes: QuantizeScratch<'a>,
 }
 
 struct Context<'a> {
@@ -24,6 +28,8 @@ struct Context<'a> {
     step: usize,
     /// `Mish(g)`: the FiLM layers' input (the time-embedding part is precomputed).
     activated_cond: &'a [f32],
+    /// Its codes, for int8 FiLM weights.
+    cond_codes: Option<CodeRows<'a>>,
     film: &'a mut [f32],
     quantized: QuantizeScratch<'a>,
 }
@@ -49,29 +55,64 @@ impl Context<'_> {
         );
     }
 
-    /// Conv1d(k, padding k/2) -> GroupNorm(groups) -> Mish, `[length, in]` -> `[length, out]`.
+    /// Conv1d(k, padding k/2) -> GroupNorm(groups) -> Mish (-> FiLM), `[length, in]` ->
+    /// `[length, out]`.
     #[allow(clippy::too_many_arguments)]
     fn conv_block(
         &mut self,
         conv: &Conv<'_>,
         norm: &Norm<'_>,
         groups: usize,
-        length: usize,
-        in_channels: usize,
+        (length, in_channels): (usize, usize),
+        film: Option<Film<'_>>,
         input: &[f32],
         output: &mut [f32],
     ) {
         let kernel = self.config.kernel_size as usize;
         let out_channels = norm.gamma.len();
         let shape = ConvShape::sequence(length, in_channels, out_channels, kernel, 1, kernel / 2);
-        self.convolve(&shape, conv, input, output, Accumulate::Overwrite);
+        let epilogue = Epilogue {
+            groups,
+            affine: (norm.gamma, norm.beta),
+            activation: Activation::Mish,
+            film,
+        };
         let output = &mut output[..shape.output_len()];
-        self.kernels.group_norm(
+        let quantized = &mut self.quantized;
+        let mut convolve = |kernels: &dyn Kernels, output: &mut [f32]| {
+            let codes = Activations::Codes(&mut *quantized);
+            let (weight, bias) = (&conv.weight, conv.bias);
+            layer::convolve(
+                kernels,
+                &shape,
+                input,
+                weight,
+                bias,
+                output,
+                Accumulate::Overwrite,
+                codes,
+            )
+        };
+        // A refined layer's second plane adds to the first's output: the epilogue follows
+        // both, so the convolution runs whole first.
+        let refined = matches!(
+            conv.weight,
+            Weight::Int8 {
+                residual: Some(_),
+                ..
+            }
+        );
+        if refined {
+            convolve(self.kernels, output);
+            return epilogue.apply(self.kernels, out_channels, output, self.film);
+        }
+        crate::kernels::conv_then(
+            self.kernels,
             output,
             out_channels,
-            groups,
-            (norm.gamma, norm.beta),
-            Activation::Mish,
+            &epilogue,
+            self.film,
+            &mut convolve,
         );
     }
 
@@ -86,36 +127,42 @@ impl Context<'_> {
     ) {
         let out_channels = block.out_channels;
         let groups = self.config.n_groups as usize;
+        let base = &block.film_table[self.step * 2 * out_channels..][..2 * out_channels];
+        let weights = match (&block.film_weight, self.cond_codes) {
+            (Weight::F32(weight), _) => FilmWeights::F32 {
+                weight,
+                input: self.activated_cond,
+            },
+            (Weight::Int8 { values, scales, .. }, Some(codes)) => FilmWeights::Int8 {
+                weight: values,
+                row_scales: scales,
+                input: codes,
+            },
+            (Weight::Int8 { values, scales, .. }, None) => FilmWeights::Int8 {
+                weight: values,
+                row_scales: scales,
+                input: CodeRows {
+                    codes: &[],
+                    scale: 0.0,
+                },
+            },
+        };
+        let film = Film { weights, base };
         self.conv_block(
             &block.conv0,
             &block.norm0,
             groups,
-            length,
-            block.in_channels,
+            (length, block.in_channels),
+            Some(film),
             input,
             temporary,
         );
-        let film = &mut self.film[..2 * out_channels];
-        let base = &block.film_table[self.step * 2 * out_channels..][..2 * out_channels];
-        layer::linear(
-            self.kernels,
-            &block.film_weight,
-            self.activated_cond,
-            (base, film),
-            &mut self.quantized,
-        );
-        let (scale, bias) = film.split_at(out_channels);
-        for position in temporary[..length * out_channels].chunks_exact_mut(out_channels) {
-            for ((value, &s), &b) in position.iter_mut().zip(scale).zip(bias) {
-                *value = s * *value + b;
-            }
-        }
         self.conv_block(
             &block.conv1,
             &block.norm1,
             groups,
-            length,
-            out_channels,
+            (length, out_channels),
+            None,
             temporary,
             output,
         );
@@ -203,12 +250,22 @@ pub fn predict_noise(
         skips: [skip1, skip2],
         film,
         quantized,
+        mut cond_codes,
     } = scratch;
+    // Every block's FiLM reads the same condition: quantized once.
+    let blocks = weights.down.iter().flatten();
+    let mut blocks = blocks
+        .chain(&weights.mid)
+        .chain(weights.up.iter().flatten());
+    let int8_film = blocks.any(|block| matches!(block.film_weight, Weight::Int8 { .. }));
+    let cond_codes = (int8_film && !activated_cond.is_empty())
+        .then(|| cond_codes.quantize_codes(kernels, activated_cond, activated_cond.len()));
     let mut context = Context {
         kernels,
         config,
         step,
         activated_cond,
+        cond_codes,
         film,
         quantized,
     };
@@ -245,8 +302,8 @@ pub fn predict_noise(
         &weights.final_conv,
         &weights.final_norm,
         FINAL_BLOCK_GROUPS,
-        horizon,
-        dims[0],
+        (horizon, dims[0]),
+        None,
         w0,
         w1,
     );

@@ -166,28 +166,6 @@ pub fn convolve_pixels(
     }
 }
 
-/// `output = base + W input` with whichever weights the file holds; int8 weights multiply
-/// the input's 15-bit codes, quantized into `quantized` (the U-Net's scheme): the FiLM
-/// layers read each weight once, and integer products take one instruction for what
-/// widening every weight to f32 took three.
-pub fn linear(
-    kernels: &dyn Kernels,
-    weight: &Weight<'_>,
-    input: &[f32],
-    (base, output): (&[f32], &mut [f32]),
-    quantized: &mut QuantizeScratch<'_>,
-) {
-    match *weight {
-        Weight::F32(values) => kernels.matvec(values, input, base, output),
-        // No codes to make of no input; the sums are empty.
-        Weight::Int8 { .. } if input.is_empty() => output.copy_from_slice(base),
-        Weight::Int8 { values, scales, .. } => {
-            let codes = quantized.quantize_codes(kernels, input, input.len());
-            kernels.matvec_int8_codes(values, scales, &codes, base, output)
-        }
-    }
-}
-
 /// An int8 trunk convolution on its input's codes, in whichever form they were quantized
 /// to, one weight plane after the other ([`planes`]).
 pub fn convolve_codes<'p>(

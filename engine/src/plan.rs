@@ -62,6 +62,9 @@ pub struct ArenaPlan {
     /// (twice the bytes of the largest trunk activation, in f32 units), a U-Net layer's to
     /// i16 codes (`kernels::QuantizeScratch`).
     pub quantized: usize,
+    /// Int8 weights only: `Mish(g)` as one row of i16 codes, which every FiLM layer of a
+    /// denoising step reads.
+    pub cond_codes: usize,
 
     /// Shared scratch: the larger of the two phases below.
     pub scratch: usize,
@@ -109,6 +112,7 @@ impl ArenaPlan {
             activated_cond: saturate(plan.activated_cond),
             film: saturate(plan.film),
             quantized: saturate(plan.quantized),
+            cond_codes: saturate(plan.cond_codes),
             scratch: saturate(plan.scratch),
             trunk_activation: saturate(plan.trunk_activation),
             trunk_stem: saturate(plan.trunk_stem),
@@ -232,6 +236,7 @@ struct Lengths {
     activated_cond: u64,
     film: u64,
     quantized: u64,
+    cond_codes: u64,
     scratch: u64,
     trunk_activation: u64,
     trunk_stem: u64,
@@ -314,17 +319,15 @@ impl Lengths {
         // Int8 layer inputs, quantized one layer at a time: the trunk's fit one activation
         // buffer as two digit planes; the U-Net's are at most `horizon` rows of an up
         // block's concatenated input (or the sample, the first block's), as i16 codes
-        // padded to whole quads, or the FiLM layers' one row; an int8 stem's patches go a
-        // band of output rows at a time (at least one row).
+        // padded to whole quads; an int8 stem's patches go a band of output rows at a time
+        // (at least one row).
         let unet_codes = 2 * horizon * 4 * max(2 * widest, action_dim).div_ceil(4);
-        // The FiLM layers' input, the activated global condition, as one row of codes.
-        let cond_codes = 2 * CodeRows::row_stride(config.global_cond_dim()) as u64;
         let stem_patch_row = stem_width as u64 * frame::PATCH_CHANNELS as u64;
-        let quantized_bytes = max(
-            max(2 * trunk_activation, unet_codes),
-            max(stem_patch_row, cond_codes),
-        );
+        let quantized_bytes = max(max(2 * trunk_activation, unet_codes), stem_patch_row);
         let quantized = aligned(quantized_bytes.div_ceil(4));
+        // The FiLM layers' input, the activated global condition, as one row of codes.
+        let cond_codes =
+            aligned((2 * CodeRows::row_stride(config.global_cond_dim()) as u64).div_ceil(4));
         let persistent = features
             + states
             + anchors
@@ -334,7 +337,8 @@ impl Lengths {
             + global_cond
             + activated_cond
             + film
-            + quantized;
+            + quantized
+            + cond_codes;
         let scratch = max(trunk, unet);
         Lengths {
             arena_bytes: 4 * (persistent + scratch),
@@ -350,6 +354,7 @@ impl Lengths {
             activated_cond,
             film,
             quantized,
+            cond_codes,
             scratch,
             trunk_activation,
             trunk_stem,

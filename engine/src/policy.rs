@@ -184,6 +184,7 @@ struct Buffers<'a> {
     activated_cond: &'a mut [f32],
     film: &'a mut [f32],
     quantized: QuantizeScratch<'a>,
+    cond_codes: QuantizeScratch<'a>,
     scratch: &'a mut [f32],
 }
 
@@ -311,6 +312,9 @@ impl<'w, 'a> Policy<'w, 'a> {
             film: carver.take(plan.film),
             quantized: QuantizeScratch {
                 values: bytemuck::cast_slice_mut(carver.take(plan.quantized)),
+            },
+            cond_codes: QuantizeScratch {
+                values: bytemuck::cast_slice_mut(carver.take(plan.cond_codes)),
             },
             scratch: carver.take(plan.scratch),
         }
@@ -514,6 +518,9 @@ impl<'w, 'a> Policy<'w, 'a> {
                 film: &mut *buffers.film,
                 quantized: QuantizeScratch {
                     values: &mut *buffers.quantized.values,
+                },
+                cond_codes: QuantizeScratch {
+                    values: &mut *buffers.cond_codes.values,
                 },
             };
             denoiser::predict_noise(

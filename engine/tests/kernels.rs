@@ -13,8 +13,8 @@ use scdp_engine::weights::{ActivationCodes, Weight};
 #[cfg(not(target_arch = "x86_64"))]
 type TileLayout = ();
 use scdp_engine::kernels::{
-    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, NarrowForm, QuantizeScratch,
-    SignedByteRows, Split, Workers,
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Epilogue, Film, FilmWeights, Kernels,
+    NarrowForm, QuantizeScratch, SignedByteRows, Split, Workers,
 };
 
 struct Lcg(u64);
@@ -2797,6 +2797,148 @@ impl Workers for Backwards {
         self.calls
             .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         (0..pieces).rev().for_each(work)
+    }
+}
+
+/// A convolution writing its output through the kernels it is given.
+type BlockConv<'a> = dyn Fn(&dyn Kernels, &mut [f32]) + 'a;
+
+/// A U-Net convolution block's epilogue (GroupNorm, Mish, FiLM from int8 or f32 rows), run
+/// by `Split` on each block of whole groups as the convolution's pieces compute it, gives the
+/// bits of the whole convolution followed by the whole epilogue on the same backend, for 2,
+/// 3 and 5 workers, pieces run in any order; and where blocks of whole groups give every
+/// worker a piece, the convolution and its epilogue took one hand-out (not a second one for
+/// FiLM's product).
+#[test]
+fn epilogues_run_on_each_block_of_groups_with_the_whole_blocks_bits_on_every_backend() {
+    let mut rng = Lcg(43);
+    // Groups of 16, 32 and 48 channels (the U-Net's three levels with 8 groups): blocks of
+    // whole groups are 64, 64 and 192 channels.
+    let shapes = [
+        ConvShape::sequence(16, 40, 128, 5, 1, 2),
+        ConvShape::sequence(8, 128, 256, 5, 1, 2),
+        ConvShape::sequence(4, 96, 384, 5, 1, 2),
+    ];
+    let groups = 8;
+    let cols = 37;
+    for shape in &shapes {
+        let channels = shape.out_channels;
+        let gamma = rng.vec(channels);
+        let beta = rng.vec(channels);
+        let base = rng.vec(2 * channels);
+        let film_f32 = rng.vec(2 * channels * cols);
+        let cond = rng.vec(cols);
+        let film_int8: Vec<i8> = (0..2 * channels * cols)
+            .map(|_| (rng.below(255) as i32 - 127) as i8)
+            .collect();
+        let row_scales: Vec<f32> = (0..2 * channels)
+            .map(|_| 0.001 + rng.next().abs())
+            .collect();
+        let cond_codes = padded_codes(
+            &random_codes(&mut rng, cols, false)
+                .into_iter()
+                .map(|code| if rng.below(2) == 0 { -code } else { code })
+                .collect::<Vec<_>>(),
+            cols,
+        );
+        let code_case = CodeCase::random(&mut rng, *shape);
+        let codes = padded_codes(&code_case.codes, shape.in_channels);
+        let input = rng.vec(shape.input_len());
+        let weight = rng.vec(shape.weight_len());
+        let bias = rng.vec(channels);
+        let films = [
+            None,
+            Some(FilmWeights::F32 {
+                weight: &film_f32,
+                input: &cond,
+            }),
+            Some(FilmWeights::Int8 {
+                weight: &film_int8,
+                row_scales: &row_scales,
+                input: CodeRows {
+                    codes: &cond_codes,
+                    scale: 0.02,
+                },
+            }),
+        ];
+        for film in films {
+            let epilogue = Epilogue {
+                groups,
+                affine: (&gamma, &beta),
+                activation: Activation::Mish,
+                film: film.map(|weights| Film {
+                    weights,
+                    base: &base,
+                }),
+            };
+            let int8 = |kernels: &dyn Kernels, output: &mut [f32]| {
+                let input = CodeRows {
+                    codes: &codes,
+                    scale: code_case.scale,
+                };
+                let parameters = (&code_case.weight_scales, &code_case.bias);
+                let (scales, bias) = parameters;
+                let packed = &code_case.packed;
+                kernels.conv_int8_codes(
+                    shape,
+                    &input,
+                    packed,
+                    scales,
+                    bias,
+                    output,
+                    Accumulate::Overwrite,
+                )
+            };
+            let f32_conv = |kernels: &dyn Kernels, output: &mut [f32]| {
+                kernels.conv(shape, &input, &weight, &bias, output, Accumulate::Overwrite)
+            };
+            for (name, kernels) in backends() {
+                let whole = |conv: &BlockConv<'_>| {
+                    let mut output = vec![0.0; shape.output_len()];
+                    let mut film = vec![0.0; 2 * channels];
+                    conv(kernels, &mut output);
+                    epilogue.apply(kernels, channels, &mut output, &mut film);
+                    output
+                };
+                let expected = [whole(&int8), whole(&f32_conv)];
+                for count in [2, 3, 5] {
+                    let workers = Backwards {
+                        count,
+                        calls: Default::default(),
+                    };
+                    let mut scratch = vec![0.0f32; 16 * 1024];
+                    let split = Split::new(kernels, &workers, &mut scratch).cutting_every_call();
+                    let what = format!("{name}, {count} workers, {shape:?}, film {film:?}");
+                    let convs: [&BlockConv<'_>; 2] = [&int8, &f32_conv];
+                    let mut int8_calls = 0;
+                    for (conv, expected) in convs.into_iter().zip(&expected) {
+                        let mut output = vec![f32::NAN; shape.output_len()];
+                        let mut film = vec![f32::NAN; 2 * channels];
+                        let mut conv =
+                            |kernels: &dyn Kernels, output: &mut [f32]| conv(kernels, output);
+                        workers.calls.store(0, std::sync::atomic::Ordering::Relaxed);
+                        scdp_engine::kernels::conv_then(
+                            &split,
+                            &mut output,
+                            channels,
+                            &epilogue,
+                            &mut film,
+                            &mut conv,
+                        );
+                        assert_same_bits(&output, expected, &what);
+                        if int8_calls == 0 {
+                            int8_calls = workers.calls.load(std::sync::atomic::Ordering::Relaxed);
+                        }
+                    }
+                    // Blocks of whole groups (one a worker at most) give as many pieces as
+                    // blocks of 64 channels, but for 48-channel groups on 3 and 5 workers (2
+                    // blocks of 192): there FiLM's product is a hand-out of its own.
+                    let fused = channels != 384 || count == 2;
+                    let expected_calls = if film.is_some() && !fused { 2 } else { 1 };
+                    assert_eq!(int8_calls, expected_calls, "{what}: hand-outs");
+                }
+            }
+        }
     }
 }
 

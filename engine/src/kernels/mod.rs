@@ -18,6 +18,7 @@
 
 #[cfg(target_arch = "aarch64")]
 pub mod aarch64;
+pub mod epilogue;
 pub mod ops;
 pub mod scalar;
 #[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
@@ -27,6 +28,7 @@ pub mod workers;
 #[cfg(target_arch = "x86_64")]
 pub mod x86_64;
 
+pub use epilogue::{Epilogue, Film, FilmWeights, conv_then};
 pub use split::Split;
 pub use workers::{Sequential, Workers};
 
@@ -596,6 +598,20 @@ pub trait Kernels: Sync {
         activation: Activation,
     ) {
         ops::group_norm(data, channels, groups, gamma, beta, activation)
+    }
+
+    /// [`epilogue::conv_then`] where this implementation runs it its own way (cut over
+    /// workers: [`Split`]); `false`, having run nothing, where it does not.
+    fn conv_then(
+        &self,
+        output: &mut [f32],
+        channels: usize,
+        epilogue: &Epilogue<'_>,
+        film: &mut [f32],
+        conv: &mut dyn FnMut(&dyn Kernels, &mut [f32]),
+    ) -> bool {
+        let _ = (output, channels, epilogue, film, conv);
+        false
     }
 
     /// [`ops::add_activate`]: `target += source`, then `activation`.

@@ -11,16 +11,18 @@
 //!   buffer, then copied (or added) into place;
 //! - the FiLM products: runs of rows.
 //!
-//! Everything else (the element-wise operations, GroupNorm, the projections evaluated a
-//! few cells at a time) runs whole on the caller.
+//! A U-Net convolution with its [`Epilogue`] ([`Kernels::conv_then`]) is cut into blocks of
+//! whole groups, and each piece runs the epilogue (GroupNorm, Mish, FiLM) on its own block.
+//! Everything else (the element-wise operations, the trunk's GroupNorm, the projections
+//! evaluated a few cells at a time) runs whole on the caller.
 
 use core::ops::Range;
 use core::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use super::workers::Workers;
 use super::{
-    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, INT8_CHANNEL_BLOCK, Kernels, NarrowForm,
-    SignedByteRows, ops::Activation,
+    Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Epilogue, INT8_CHANNEL_BLOCK, Kernels,
+    NarrowForm, SignedByteRows, ops::Activation,
 };
 
 /// One band of a convolution: its shape, the input range it reads, its output.
@@ -47,7 +49,20 @@ pub struct Split<'s> {
     min_products: usize,
     /// Held while a call uses `scratch`.
     busy: AtomicBool,
+    /// The epilogue each block of a channel-cut convolution runs, inside
+    /// [`Kernels::conv_then`]; set once a call has run it.
+    fused: Option<Fused<'s>>,
+    applied: AtomicBool,
     _scratch: core::marker::PhantomData<&'s mut [f32]>,
+}
+
+/// An [`Epilogue`] to run on each block: the convolution's output channels, and the FiLM
+/// scratch (`2 channels` values), each block taking `2 width` of them at `2 start`.
+#[derive(Clone, Copy, Debug)]
+struct Fused<'e> {
+    epilogue: Epilogue<'e>,
+    channels: usize,
+    film: Shared,
 }
 
 impl core::fmt::Debug for Split<'_> {
@@ -70,6 +85,8 @@ impl<'s> Split<'s> {
             scratch: Shared::new(scratch),
             min_products: MIN_SPLIT_PRODUCTS,
             busy: AtomicBool::new(false),
+            fused: None,
+            applied: AtomicBool::new(false),
             _scratch: core::marker::PhantomData,
         }
     }
@@ -170,8 +187,26 @@ impl<'s> Split<'s> {
     ) -> bool {
         let out_channels = shape.out_channels;
         let positions = shape.out_height() * shape.out_width();
+        let products = positions * weight_products;
         let blocks = out_channels.div_ceil(INT8_CHANNEL_BLOCK);
-        let pieces = self.pieces(blocks, positions * weight_products);
+        let mut pieces = self.pieces(blocks, products);
+        let mut unit = INT8_CHANNEL_BLOCK;
+        // Blocks of whole groups for the epilogue, unless that leaves fewer pieces.
+        let fused = self
+            .fused
+            .filter(|fused| store == Store::Overwrite && fused.channels == out_channels)
+            .and_then(|fused| {
+                let group = fused.epilogue.group_size(out_channels);
+                let whole = group > 0 && out_channels.is_multiple_of(group);
+                let unit = whole.then(|| lcm(INT8_CHANNEL_BLOCK, group))?;
+                let pieces_then = self.pieces(out_channels.div_ceil(unit), products);
+                (pieces_then >= pieces).then_some((fused, unit))
+            });
+        if let Some((_, fused_unit)) = fused {
+            unit = fused_unit;
+            pieces = self.pieces(out_channels.div_ceil(unit), products);
+        }
+        let units = out_channels.div_ceil(unit);
         let fits = output.len() >= positions * out_channels
             && self.scratch.len >= positions * out_channels;
         if pieces < 2 || !fits {
@@ -183,9 +218,9 @@ impl<'s> Split<'s> {
         let (scratch, out) = (self.scratch, Shared::new(output));
         let done = AtomicUsize::new(0);
         self.workers.run(pieces, &|piece| {
-            let blocks = share(blocks, pieces, piece);
-            let start = blocks.start * INT8_CHANNEL_BLOCK;
-            let end = (blocks.end * INT8_CHANNEL_BLOCK).min(out_channels);
+            let units = share(units, pieces, piece);
+            let start = units.start * unit;
+            let end = (units.end * unit).min(out_channels);
             if start >= end {
                 done.fetch_add(1, Ordering::Relaxed);
                 return;
@@ -209,6 +244,19 @@ impl<'s> Split<'s> {
             if !block(start..end, values) {
                 return;
             }
+            if let Some((fused, _)) = fused {
+                // SAFETY: the pieces' channel ranges are disjoint, so are their parts of
+                // the FiLM scratch, which the caller of `conv_then` does not touch until
+                // it returns.
+                let film = match fused.epilogue.film {
+                    Some(_) => unsafe { fused.film.slice(2 * start..2 * end) },
+                    None => &mut [],
+                };
+                let channels = start..end;
+                fused
+                    .epilogue
+                    .run(self.kernels, out_channels, channels, values, film);
+            }
             for (position, row) in values.chunks_exact(width).enumerate() {
                 let target = row_of(position);
                 match store {
@@ -225,6 +273,9 @@ impl<'s> Split<'s> {
             done == 0 || done == pieces,
             "a channel block was declined, not all"
         );
+        if fused.is_some() && done == pieces {
+            self.applied.store(true, Ordering::Relaxed);
+        }
         done == pieces
     }
 
@@ -401,6 +452,15 @@ enum Store {
     /// The block started from the output's values (f32 `Add`: the sums continue them) and
     /// its results replace them.
     Continue,
+}
+
+/// The least common multiple of `a` and `b` (both nonzero).
+fn lcm(a: usize, b: usize) -> usize {
+    let (mut x, mut y) = (a, b);
+    while y != 0 {
+        (x, y) = (y, x % y);
+    }
+    a / x * b
 }
 
 /// Piece `piece`'s share of `units` cut into `pieces`: sizes differ by at most one.
@@ -774,6 +834,45 @@ impl Kernels for Split<'_> {
 
     fn add_activate(&self, target: &mut [f32], source: &[f32], activation: Activation) {
         self.kernels.add_activate(target, source, activation)
+    }
+
+    fn conv_then(
+        &self,
+        output: &mut [f32],
+        channels: usize,
+        epilogue: &Epilogue<'_>,
+        film: &mut [f32],
+        conv: &mut dyn FnMut(&dyn Kernels, &mut [f32]),
+    ) -> bool {
+        let film_len = if epilogue.film.is_some() {
+            2 * channels
+        } else {
+            0
+        };
+        if self.fused.is_some() || film.len() < film_len || self.busy.load(Ordering::Acquire) {
+            return false;
+        }
+        // A view of these kernels whose channel-cut convolution runs the epilogue on each
+        // block; this one is not used until it is done.
+        let fused = Split {
+            kernels: self.kernels,
+            workers: self.workers,
+            scratch: self.scratch,
+            min_products: self.min_products,
+            busy: AtomicBool::new(false),
+            fused: Some(Fused {
+                epilogue: *epilogue,
+                channels,
+                film: Shared::new(&mut film[..film_len]),
+            }),
+            applied: AtomicBool::new(false),
+            _scratch: core::marker::PhantomData,
+        };
+        conv(&fused, output);
+        if !fused.applied.load(Ordering::Relaxed) {
+            epilogue.apply(self, channels, output, film);
+        }
+        true
     }
 
     fn add_channel_moments(
