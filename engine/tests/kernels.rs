@@ -2788,6 +2788,15 @@ struct Backwards {
     calls: std::sync::atomic::AtomicUsize,
 }
 
+impl Backwards {
+    fn new(count: usize) -> Self {
+        Backwards {
+            count,
+            calls: Default::default(),
+        }
+    }
+}
+
 impl Workers for Backwards {
     fn count(&self) -> usize {
         self.count
@@ -2902,10 +2911,7 @@ fn epilogues_run_on_each_block_of_groups_with_the_whole_blocks_bits_on_every_bac
                 };
                 let expected = [whole(&int8), whole(&f32_conv)];
                 for count in [2, 3, 5] {
-                    let workers = Backwards {
-                        count,
-                        calls: Default::default(),
-                    };
+                    let workers = Backwards::new(count);
                     let mut scratch = vec![0.0f32; 16 * 1024];
                     let split = Split::new(kernels, &workers, &mut scratch).cutting_every_call();
                     let what = format!("{name}, {count} workers, {shape:?}, film {film:?}");
@@ -2968,10 +2974,7 @@ fn calls_cut_over_workers_give_the_whole_calls_bits_on_every_backend() {
     ];
     for (name, kernels) in backends() {
         for count in [2, 3, 5] {
-            let workers = Backwards {
-                count,
-                calls: Default::default(),
-            };
+            let workers = Backwards::new(count);
             let mut scratch = vec![0.0f32; 16 * 1024];
             let split = Split::new(kernels, &workers, &mut scratch).cutting_every_call();
             let cut = |what: &str| {
