@@ -128,23 +128,20 @@ impl Context<'_> {
         let out_channels = block.out_channels;
         let groups = self.config.n_groups as usize;
         let base = &block.film_table[self.step * 2 * out_channels..][..2 * out_channels];
-        let weights = match (&block.film_weight, self.cond_codes) {
-            (Weight::F32(weight), _) => FilmWeights::F32 {
+        // No condition, no codes: FiLM is then its base.
+        let no_codes = CodeRows {
+            codes: &[],
+            scale: 0.0,
+        };
+        let weights = match &block.film_weight {
+            Weight::F32(weight) => FilmWeights::F32 {
                 weight,
                 input: self.activated_cond,
             },
-            (Weight::Int8 { values, scales, .. }, Some(codes)) => FilmWeights::Int8 {
+            Weight::Int8 { values, scales, .. } => FilmWeights::Int8 {
                 weight: values,
                 row_scales: scales,
-                input: codes,
-            },
-            (Weight::Int8 { values, scales, .. }, None) => FilmWeights::Int8 {
-                weight: values,
-                row_scales: scales,
-                input: CodeRows {
-                    codes: &[],
-                    scale: 0.0,
-                },
+                input: self.cond_codes.unwrap_or(no_codes),
             },
         };
         let film = Film { weights, base };

@@ -116,9 +116,7 @@ impl Epilogue<'_> {
             }
         }
     }
-}
 
-impl Epilogue<'_> {
     /// Runs on a whole `[positions, channels]` output; `film` is scratch for FiLM's `2
     /// channels` scales and biases.
     pub fn apply(
