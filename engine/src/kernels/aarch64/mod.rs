@@ -69,11 +69,20 @@ pub(crate) mod int8 {
     pub(crate) use super::int8_lanes::DotQ as SignedBytes;
 }
 
-// Hosted builds ask the OS (`os`); firmware reads the ID registers (below).
+// Hosted builds ask the OS; firmware reads the ID registers.
+
+/// The dot-product extension (`sdot`, FEAT_DotProd) is present, as the OS reports it.
 #[cfg(feature = "std")]
-mod os;
+pub fn has_dotprod() -> bool {
+    std::arch::is_aarch64_feature_detected!("dotprod")
+}
+
+/// The int8 matrix multiply extension (`usdot`, `smmla`, FEAT_I8MM) is present, and the
+/// dot product, as the OS reports them.
 #[cfg(feature = "std")]
-pub use os::{has_dotprod, has_i8mm};
+pub fn has_i8mm() -> bool {
+    std::arch::is_aarch64_feature_detected!("i8mm") && has_dotprod()
+}
 
 /// The dot-product extension (`sdot`, FEAT_DotProd) is present: ID_AA64ISAR0_EL1.DP, bits
 /// 47:44, is 1 or more.
