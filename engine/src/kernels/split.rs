@@ -189,23 +189,20 @@ impl<'s> Split<'s> {
         let positions = shape.out_height() * shape.out_width();
         let products = positions * weight_products;
         let blocks = out_channels.div_ceil(INT8_CHANNEL_BLOCK);
-        let mut pieces = self.pieces(blocks, products);
-        let mut unit = INT8_CHANNEL_BLOCK;
+        let plain = (INT8_CHANNEL_BLOCK, self.pieces(blocks, products));
         // Blocks of whole groups for the epilogue, unless that leaves fewer pieces.
-        let fused = self
+        let by_groups = self
             .fused
             .filter(|fused| store == Store::Overwrite && fused.channels == out_channels)
             .and_then(|fused| {
                 let group = fused.epilogue.group_size(out_channels);
                 let whole = group > 0 && out_channels.is_multiple_of(group);
                 let unit = whole.then(|| lcm(INT8_CHANNEL_BLOCK, group))?;
-                let pieces_then = self.pieces(out_channels.div_ceil(unit), products);
-                (pieces_then >= pieces).then_some((fused, unit))
+                let pieces = self.pieces(out_channels.div_ceil(unit), products);
+                (pieces >= plain.1).then_some((fused, unit, pieces))
             });
-        if let Some((_, fused_unit)) = fused {
-            unit = fused_unit;
-            pieces = self.pieces(out_channels.div_ceil(unit), products);
-        }
+        let fused = by_groups.map(|(fused, _, _)| fused);
+        let (unit, pieces) = by_groups.map_or(plain, |(_, unit, pieces)| (unit, pieces));
         let units = out_channels.div_ceil(unit);
         let fits = output.len() >= positions * out_channels
             && self.scratch.len >= positions * out_channels;
@@ -244,7 +241,7 @@ impl<'s> Split<'s> {
             if !block(start..end, values) {
                 return;
             }
-            if let Some((fused, _)) = fused {
+            if let Some(fused) = fused {
                 // SAFETY: the pieces' channel ranges are disjoint, so are their parts of
                 // the FiLM scratch, which the caller of `conv_then` does not touch until
                 // it returns.
