@@ -5,7 +5,10 @@
 //! - a layer's worth of data passed between cores: the calling thread writes a buffer (as
 //!   GroupNorm or the quantization of a layer's input do, on the caller), then each of the
 //!   2 threads sums its half (as a convolution's pieces read their input), against one
-//!   thread writing it and summing all of it.
+//!   thread writing it and summing all of it;
+//! - weights streamed from L3, as the denoising loop's layers read theirs (14.9 MB a step
+//!   for door-open's int8 file): a 16 MiB buffer that nobody writes, summed by one thread,
+//!   against each of 2 threads summing its half.
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use scdp_threads::{ThreadPool, Workers};
@@ -57,6 +60,20 @@ fn pool(criterion: &mut Criterion) {
             });
         });
     }
+    group.finish();
+    let mut group = criterion.benchmark_group("pool/read once, MiB");
+    let weights: Vec<u32> = (0..16 << 18).collect();
+    let half = weights.len() / 2;
+    group.bench_function("1 thread, 16", |bench| {
+        bench.iter(|| std::hint::black_box(sum(&weights)));
+    });
+    group.bench_function("2 threads, 16", |bench| {
+        bench.iter(|| {
+            pool.run(2, &|piece| {
+                std::hint::black_box(sum(&weights[piece * half..][..half]));
+            });
+        });
+    });
     group.finish();
 }
 

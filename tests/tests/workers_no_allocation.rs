@@ -2,42 +2,12 @@
 //! inference (its own binary: the counting allocator and the thread count see the whole
 //! process).
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-
 use scdp_engine::{ArenaPlan, Model, Noise, Policy};
-use scdp_tests::{Fixture, golden_fixtures, synthetic_narrow_weights_file};
+use scdp_tests::{
+    CountingAllocator, Fixture, allocations_during, golden_fixtures, synthetic_narrow_weights_file,
+};
 use scdp_threads::ThreadPool;
 use weights_tool::writer::AlignedBytes;
-
-struct CountingAllocator;
-
-static COUNTING: AtomicBool = AtomicBool::new(false);
-static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
-
-// SAFETY: forwards every call unchanged to the system allocator; it only counts.
-unsafe impl GlobalAlloc for CountingAllocator {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        if COUNTING.load(Ordering::SeqCst) {
-            ALLOCATIONS.fetch_add(1, Ordering::SeqCst);
-        }
-        // SAFETY: the caller's contract for `alloc` is passed on as is.
-        unsafe { System.alloc(layout) }
-    }
-
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        // SAFETY: `ptr` came from `System.alloc` with this layout.
-        unsafe { System.dealloc(ptr, layout) }
-    }
-
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        if COUNTING.load(Ordering::SeqCst) {
-            ALLOCATIONS.fetch_add(1, Ordering::SeqCst);
-        }
-        // SAFETY: the caller's contract for `realloc` is passed on as is.
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
 
 #[global_allocator]
 static ALLOCATOR: CountingAllocator = CountingAllocator;
@@ -90,15 +60,12 @@ fn inferences_on_a_pool_create_no_thread_and_allocate_nothing() {
     assert!(before >= 3, "{before} threads with a pool of three workers");
     let first = infer(&mut policy);
     let mut actions = Vec::with_capacity(5);
-    ALLOCATIONS.store(0, Ordering::SeqCst);
-    COUNTING.store(true, Ordering::SeqCst);
-    drop(std::hint::black_box(vec![1u8; 16]));
-    let sanity = ALLOCATIONS.swap(0, Ordering::SeqCst);
-    for _ in 0..5 {
-        actions.push(infer(&mut policy));
-    }
-    COUNTING.store(false, Ordering::SeqCst);
-    let allocations = ALLOCATIONS.load(Ordering::SeqCst);
+    let sanity = allocations_during(|| drop(std::hint::black_box(vec![1u8; 16])));
+    let allocations = allocations_during(|| {
+        for _ in 0..5 {
+            actions.push(infer(&mut policy));
+        }
+    });
     assert!(sanity >= 1, "the allocation counter counts nothing");
     assert_eq!(allocations, 0, "five inferences on a pool allocated");
     assert_eq!(threads(), before, "inferences created threads");
