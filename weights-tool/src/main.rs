@@ -726,20 +726,41 @@ fn run(args: &RunArgs) -> anyhow::Result<()> {
                 samples[index].push(bench(&mut runner, &inputs, runs.max(1))?);
             }
         }
+        let tables: Vec<_> = samples
+            .iter()
+            .map(|sets| weights_tool::run::StageSamples::table(sets))
+            .collect();
         for (index, &threads) in counts.iter().enumerate() {
-            let table = weights_tool::run::StageSamples::table(&samples[index]);
             println!(
                 "{iterations} runs after a warm-up, {}:",
                 thread_count(threads)
             );
-            println!("  {:<36} {:>10} {:>10}", "stage", "median ms", "p99 ms");
-            for (stage, (median, p99)) in table {
-                println!(
-                    "  {:<36} {:>10.2} {:>10.2}",
+            // Past the first count, each median against the first's, taken in the same run.
+            let against = (index > 0).then(|| format!("x {}", thread_count(counts[0])));
+            let header = format!(
+                "  {:<36} {:>10} {:>10} {:>12}",
+                "stage",
+                "median ms",
+                "p99 ms",
+                against.as_deref().unwrap_or("")
+            );
+            println!("{}", header.trim_end());
+            for (stage, &(median, p99)) in &tables[index] {
+                let ratio = match against {
+                    Some(_) => {
+                        let first = tables[0][stage].0;
+                        format!("{:.3}", median.as_secs_f64() / first.as_secs_f64())
+                    }
+                    None => String::new(),
+                };
+                let row = format!(
+                    "  {:<36} {:>10.2} {:>10.2} {:>12}",
                     &stage[2..],
                     milliseconds(median),
-                    milliseconds(p99)
+                    milliseconds(p99),
+                    ratio
                 );
+                println!("{}", row.trim_end());
             }
         }
     }

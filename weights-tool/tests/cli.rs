@@ -256,6 +256,62 @@ fn run_holds_a_run_files_prefix() {
     }
 }
 
+/// `run --threads 1,3 --bench N` checks that 3 workers give 1's bits and prints, for 3, each
+/// stage's median against 1 thread's.
+#[test]
+fn run_benchmarks_each_thread_count_against_the_first() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = repo_file("tests/configs/tiny.toml");
+    let checkpoint = synth_seed_1(&config, dir.path());
+    let inputs = repo_file("tests/fixtures/golden/tiny/basic.safetensors");
+    let result = convert_and_run(&checkpoint, &config, &inputs, dir.path());
+    let model = result.with_file_name("model.scdp");
+    let output = tool(&[
+        "run",
+        model.to_str().unwrap(),
+        "--inputs",
+        inputs.to_str().unwrap(),
+        "--threads",
+        "1,3",
+        "--bench",
+        "3",
+    ]);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    let stdout = text(&output.stdout);
+    assert!(stdout.contains("threads: 3, the same bits"), "{stdout}");
+    let (first, second) = stdout
+        .split_once("3 runs after a warm-up, 3 threads:")
+        .expect("a table for 3 threads");
+    let rows_of = |table: &str| -> Vec<Vec<String>> {
+        table
+            .lines()
+            .skip_while(|line| !line.trim_start().starts_with("stage"))
+            .skip(1)
+            .take(4)
+            .map(|line| line.split_whitespace().map(String::from).collect())
+            .collect()
+    };
+    let (one, three) = (rows_of(first), rows_of(second));
+    assert!(
+        second.lines().nth(1).unwrap().ends_with("x 1 thread"),
+        "{stdout}"
+    );
+    assert_eq!((one.len(), three.len()), (4, 4), "{stdout}");
+    for (one, three) in one.iter().zip(&three) {
+        let number =
+            |row: &[String], from_end: usize| -> f64 { row[row.len() - from_end].parse().unwrap() };
+        // 1 thread's rows end with median and p99; 3 threads' with those and the ratio.
+        let expected = number(three, 3) / number(one, 2);
+        let ratio = number(three, 1);
+        assert!(ratio > 0.0 && ratio.is_finite(), "{stdout}");
+        // The printed medians are rounded to 0.01 ms, the ratio taken before rounding.
+        assert!(
+            (ratio - expected).abs() <= 0.01 / number(one, 2) + 1e-3,
+            "{stdout}"
+        );
+    }
+}
+
 /// Runs the tool, expecting failure with exactly one line on stderr that contains `needle`.
 fn assert_one_line_error(args: &[&str], needle: &str) {
     let output = tool(args);
