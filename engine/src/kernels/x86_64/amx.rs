@@ -430,8 +430,10 @@ impl Kernels for Amx {
         }
     }
 
-    /// VNNI's whole-byte tile: the matrix tiles' signed-by-signed products would take these
-    /// codes directly, untried for want of an AMX machine to test them on.
+    /// VNNI's whole-byte tile. On the tiles (each code split into the digits of the same
+    /// code widened, the short-sequence kernel) these layers were faster alone but not in
+    /// the loop, which streams them from L3: door-open's 8-bit layers took 25.2 GB/s of
+    /// weights there against VNNI's 27.3 (`benches/README.md`, "Not kept").
     fn conv_int8_signed_bytes(
         &self,
         shape: &ConvShape,
