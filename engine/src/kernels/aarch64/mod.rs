@@ -70,18 +70,20 @@ pub(crate) mod int8 {
 }
 
 // Hosted builds ask the OS; firmware reads the ID registers.
+#[cfg(feature = "std")]
+use std::arch::is_aarch64_feature_detected;
 
 /// The dot-product extension (`sdot`, FEAT_DotProd) is present, as the OS reports it.
 #[cfg(feature = "std")]
 pub fn has_dotprod() -> bool {
-    std::arch::is_aarch64_feature_detected!("dotprod")
+    is_aarch64_feature_detected!("dotprod")
 }
 
 /// The int8 matrix multiply extension (`usdot`, `smmla`, FEAT_I8MM) is present, and the
 /// dot product, as the OS reports them.
 #[cfg(feature = "std")]
 pub fn has_i8mm() -> bool {
-    std::arch::is_aarch64_feature_detected!("i8mm") && has_dotprod()
+    is_aarch64_feature_detected!("i8mm") && has_dotprod()
 }
 
 /// The dot-product extension (`sdot`, FEAT_DotProd) is present: ID_AA64ISAR0_EL1.DP, bits
