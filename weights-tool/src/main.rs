@@ -746,12 +746,11 @@ fn run(args: &RunArgs) -> anyhow::Result<()> {
             );
             println!("{}", header.trim_end());
             for (stage, &(median, p99)) in &tables[index] {
-                let ratio = match against {
-                    Some(_) => {
-                        let first = tables[0][stage].0;
-                        format!("{:.3}", median.as_secs_f64() / first.as_secs_f64())
-                    }
-                    None => String::new(),
+                let ratio = if index > 0 {
+                    let first = tables[0][stage].0;
+                    format!("{:.3}", median.as_secs_f64() / first.as_secs_f64())
+                } else {
+                    String::new()
                 };
                 let row = format!(
                     "  {:<36} {:>10.2} {:>10.2} {:>12}",

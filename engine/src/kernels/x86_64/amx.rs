@@ -433,7 +433,8 @@ impl Kernels for Amx {
     /// VNNI's whole-byte tile. On the tiles (each code split into the digits of the same
     /// code widened, the short-sequence kernel) these layers were faster alone but not in
     /// the loop, which streams them from L3: door-open's 8-bit layers took 25.2 GB/s of
-    /// weights there against VNNI's 27.3 (`benches/README.md`, "Not kept").
+    /// weights there against VNNI's 27.2-27.4 (`benches/README.md`, "Lessons: tried and not
+    /// kept").
     fn conv_int8_signed_bytes(
         &self,
         shape: &ConvShape,
