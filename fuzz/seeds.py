@@ -197,17 +197,39 @@ def push(image_byte=0x40, state=(0.0, 0.0, 0.0, 0.0), image_len=None, raw_state=
     return out + bytes([0]) + bytes(i8(v, 64) for v in state)
 
 
-def infer_seed(seed=7) -> bytes:
-    return bytes([2, 0]) + struct.pack("<Q", seed)
+NO_PREFIX = bytes([0])
+ACTION_DIM = 3
+MAX_ROWS = 8 - 2 + 1  # horizon - n_obs_steps + 1
+
+
+def prefix(rows=0, planned=0, values=None, noised=False, raw=False) -> bytes:
+    """Whole rows (modest values, or raw bit patterns with raw=True) of a committed prefix
+    then planned rows; values default to a ramp."""
+    count = (rows + planned) * ACTION_DIM
+    values = values if values is not None else [0.125 * ((i % 7) - 3) for i in range(count)]
+    flags = (2 if raw else 1) | (4 if noised else 0)
+    out = bytes([flags, rows, planned])
+    if raw:
+        return out + b"".join(f32(v) for v in values)
+    return out + bytes(i8(v, 32) for v in values)
+
+
+def prefix_lengths(committed, planned=0) -> bytes:
+    """Any value counts (modest values): lengths that are not whole rows."""
+    return bytes([3, committed, planned]) + bytes(i8(0.25, 32) for _ in range(committed + planned))
+
+
+def infer_seed(seed=7, after=NO_PREFIX) -> bytes:
+    return bytes([2, 0]) + struct.pack("<Q", seed) + after
 
 
 def infer_given(values=None, raw=False, length=None) -> bytes:
     if length is not None:
-        return bytes([2, 3]) + struct.pack("<H", length) + bytes(length)
+        return bytes([2, 3]) + struct.pack("<H", length) + bytes(length) + NO_PREFIX
     values = values if values is not None else [0.25 * ((i % 5) - 2) for i in range(SEQUENCE)]
     if raw:
-        return bytes([2, 2]) + b"".join(f32(v) for v in values)
-    return bytes([2, 1]) + bytes(i8(v, 32) for v in values)
+        return bytes([2, 2]) + b"".join(f32(v) for v in values) + NO_PREFIX
+    return bytes([2, 1]) + bytes(i8(v, 32) for v in values) + NO_PREFIX
 
 
 RESET = bytes([3])
@@ -218,7 +240,8 @@ IDENTITY_T = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 1, 0, 0, 0, 1]
 def inference_seeds():
     for setup, name in ((0, "f32"), (1, "int8"), (2, "f32-scalar"), (3, "int8-scalar")):
         for seed_name, data in plain_inference_seeds():
-            if setup == 0 or seed_name in ("seeded", "history", "state-huge", "noise-huge"):
+            if setup == 0 or seed_name in ("seeded", "history", "state-huge", "noise-huge",
+                                           "prefix", "prefix-noised-planned"):
                 yield f"{name}-{seed_name}", bytes([setup]) + data
 
 
@@ -252,6 +275,21 @@ def plain_inference_seeds():
     yield "noise-nan", camera() + push() + infer_given(
         [float("nan")] + [0.0] * (SEQUENCE - 1), raw=True)
     yield "noise-huge", camera() + push() + infer_given([3e38] * SEQUENCE, raw=True)
+    yield "prefix", camera() + push() + infer_seed(after=prefix(3))
+    yield "prefix-noised-planned", camera() + push() + infer_seed(
+        after=prefix(2, 3, noised=True))
+    yield "prefix-no-rows", camera() + push() + infer_seed(after=prefix(0))
+    yield "prefix-whole-horizon", camera() + push() + infer_seed(after=prefix(MAX_ROWS))
+    yield "prefix-too-long", camera() + push() + infer_seed(after=prefix(MAX_ROWS, 1))
+    yield "prefix-partial-row", camera() + push() + infer_seed(after=prefix_lengths(4))
+    yield "prefix-planned-partial-row", camera() + push() + infer_seed(
+        after=prefix_lengths(3, 2))
+    yield "prefix-nan", camera() + push() + infer_seed(
+        after=prefix(1, values=[float("nan"), 0.0, 0.0], raw=True))
+    yield "prefix-planned-inf", camera() + push() + infer_seed(
+        after=prefix(1, 1, values=[0.0] * 4 + [float("inf"), 0.0], raw=True))
+    yield "prefix-huge", camera() + push() + infer_seed(after=prefix(2, values=[3e38] * 6, raw=True))
+    yield "prefix-no-camera", push() + infer_seed(after=prefix(2))
 
 
 def main():

@@ -18,7 +18,8 @@ use std::sync::OnceLock;
 
 use scdp_engine::format::CHECKSUM_RANGE;
 use scdp_engine::{
-    ArenaPlan, BackboneNorm, Backend, Camera, Error, Model, ModelConfig, Noise, Policy, format,
+    ArenaPlan, BackboneNorm, Backend, Camera, Error, Model, ModelConfig, Noise, Policy, Prefix,
+    PrefixMode, format,
 };
 use weights_tool::Quant;
 use weights_tool::writer::{AlignedBytes, aligned_copy};
@@ -478,12 +479,85 @@ fn expect_one_of(result: Result<(), Error>, allowed: &[Error], what: &str) {
     }
 }
 
+/// An inference's committed prefix and planned rows as the input gives them, and the
+/// errors they call for.
+struct DecodedPrefix {
+    committed: Vec<f32>,
+    planned: Vec<f32>,
+    mode: PrefixMode,
+    /// Modest values in whole rows that fit: an inference that succeeds returns them.
+    returned: bool,
+    errors: Vec<Error>,
+}
+
+/// The prefix byte: bits 0-1 none (the plain `infer`), whole rows of modest values, whole
+/// rows of any bit patterns, or any lengths; bit 2 the `Noised` mode. Row counts may add
+/// up to one more than the horizon holds.
+fn decode_prefix(input: &mut Input<'_>, config: &ModelConfig) -> Option<DecodedPrefix> {
+    let flags = input.byte();
+    let action_dim = config.action_dim as usize;
+    let max_rows = Prefix::max_rows(config);
+    let (committed_len, planned_len) = match flags % 4 {
+        0 => return None,
+        1 | 2 => {
+            let rows = input.byte() as usize % (max_rows + 1);
+            let planned = input.byte() as usize % (max_rows + 2 - rows);
+            (rows * action_dim, planned * action_dim)
+        }
+        _ => (
+            input.byte() as usize % (2 * max_rows * action_dim + 1),
+            input.byte() as usize % (max_rows * action_dim + 1),
+        ),
+    };
+    let raw = flags % 4 == 2;
+    let mut values = |len: usize| -> Vec<f32> {
+        (0..len)
+            .map(|_| {
+                if raw {
+                    input.any_f32()
+                } else {
+                    input.small_f32() / 2.0
+                }
+            })
+            .collect()
+    };
+    let committed = values(committed_len);
+    let planned = values(planned_len);
+    let found = committed.len() + planned.len();
+    let whole_rows = committed.len().is_multiple_of(action_dim)
+        && planned.len().is_multiple_of(action_dim)
+        && found <= max_rows * action_dim;
+    let mut errors = Vec::new();
+    if !whole_rows {
+        errors.push(Error::PrefixSize {
+            max_rows,
+            action_dim,
+            found,
+        });
+    } else if committed.iter().chain(&planned).any(|v| !v.is_finite()) {
+        errors.push(Error::NonFinitePrefix);
+    }
+    let mode = if flags & 4 != 0 {
+        PrefixMode::Noised
+    } else {
+        PrefixMode::Replace
+    };
+    Some(DecodedPrefix {
+        returned: !raw && errors.is_empty(),
+        committed,
+        planned,
+        mode,
+        errors,
+    })
+}
+
 /// Target `inference`: a setup byte (bit 0: the int8 file, bit 1: scalar kernels), then up
 /// to 12 operations on a fresh [`MICRO`] policy: set a camera (any of the four calibration
 /// modes), push an observation (image of any length and bytes, state of any length and
-/// values), infer (seeded, given noise of any values or length), reset. Every result is
-/// checked against what the inputs call for; every successful inference is repeated and
-/// must give the same bits.
+/// values), infer (seeded, given noise of any values or length; then a committed prefix
+/// and planned rows of any values or lengths, or none), reset. Every result is checked
+/// against what the inputs call for; every successful inference is repeated and must give
+/// the same bits.
 pub fn fuzz_inference(data: &[u8]) {
     let mut input = Input::new(data);
     let (quant, backend) = choices(input.byte(), 1, 2);
@@ -600,7 +674,14 @@ pub fn fuzz_inference(data: &[u8]) {
                 } else {
                     Noise::Given(&values)
                 };
+                let decoded = decode_prefix(&mut input, &config);
+                let prefix = decoded.as_ref().map(|decoded| {
+                    Prefix::new(&decoded.committed, decoded.mode).with_planned(&decoded.planned)
+                });
                 let mut allowed = Vec::new();
+                if let Some(decoded) = &decoded {
+                    allowed.extend_from_slice(&decoded.errors);
+                }
                 if !has_camera {
                     allowed.push(Error::NoCamera);
                 }
@@ -616,7 +697,7 @@ pub fn fuzz_inference(data: &[u8]) {
                 if noise_mode != 0 && values.iter().any(|v| !v.is_finite()) {
                     allowed.push(Error::NonFiniteNoise);
                 }
-                let first = run_inference(&mut policy, noise);
+                let first = run_inference(&mut policy, noise, prefix);
                 match &first {
                     Ok((action_pred, action, anchors)) => {
                         assert!(allowed.is_empty(), "Ok, expected one of {allowed:?}");
@@ -626,6 +707,19 @@ pub fn fuzz_inference(data: &[u8]) {
                         assert_eq!(anchors.len(), anchors_len);
                         for uv in anchors.chunks_exact(2) {
                             assert_eq!(uv[0].is_nan(), uv[1].is_nan(), "anchor {uv:?}");
+                        }
+                        // The committed rows come back, normalized and back: a few ulps
+                        // (tests/tests/prefix.rs holds real actions to 1e-6; MICRO's
+                        // synthetic normalization and values up to 4 get 1e-5).
+                        let returned = decoded.as_ref().filter(|decoded| decoded.returned);
+                        if let Some(decoded) = returned {
+                            let rows = &action_pred[action_start..][..decoded.committed.len()];
+                            for (got, want) in rows.iter().zip(&decoded.committed) {
+                                assert!(
+                                    (got - want).abs() <= 1e-5 * want.abs().max(1.0),
+                                    "prefix row value {got} for {want}"
+                                );
+                            }
                         }
                     }
                     Err(Error::NonFiniteResult { step }) if allowed.is_empty() => {
@@ -637,7 +731,7 @@ pub fn fuzz_inference(data: &[u8]) {
                     ),
                 }
                 // Same state, same noise: same bits.
-                let second = run_inference(&mut policy, noise);
+                let second = run_inference(&mut policy, noise, prefix);
                 assert_eq!(
                     bits(&first),
                     bits(&second),
@@ -655,9 +749,17 @@ pub fn fuzz_inference(data: &[u8]) {
 
 type Inference = Result<(Vec<f32>, Vec<f32>, Vec<f32>), Error>;
 
-/// One inference, checked to allocate nothing; the results are copied out afterwards.
-fn run_inference(policy: &mut Policy<'_, '_>, noise: Noise<'_>) -> Inference {
-    let actions = no_alloc(|| policy.infer(noise))?;
+/// One inference (the plain `infer` without a prefix), checked to allocate nothing; the
+/// results are copied out afterwards.
+fn run_inference(
+    policy: &mut Policy<'_, '_>,
+    noise: Noise<'_>,
+    prefix: Option<Prefix<'_>>,
+) -> Inference {
+    let actions = match prefix {
+        Some(prefix) => no_alloc(|| policy.infer_with(noise, prefix))?,
+        None => no_alloc(|| policy.infer(noise))?,
+    };
     Ok((
         actions.action_pred().to_vec(),
         actions.action().to_vec(),
