@@ -1320,6 +1320,62 @@ fn symmetric_quantization_round_trips_within_half_a_step() {
     assert!(ops::quantize_symmetric(&[1.0, f32::INFINITY], &mut [0; 2]).is_nan());
 }
 
+/// An input so close to zero that `limit / max |x|` overflows f32 (max |x| below
+/// `limit / f32::MAX`: 4.8e-35 for 15-bit codes, 7.5e-37 for bytes, 3.7e-37 for signed
+/// bytes; a fuzzed layer input reached it) quantizes as all zeros with scale 1, like an
+/// all-zero input, on every quantizer and backend: computing its codes would round an
+/// infinite product (undefined in the rounding's unchecked conversion; an overflow panic in
+/// checked builds). Just above the threshold the codes are still computed, the largest value
+/// taking the largest code. Negative values where the quantizer is signed.
+#[test]
+fn quantizing_a_near_zero_input_gives_zero_codes_on_every_backend() {
+    let near_zero = [1e-37f32, -2e-38, 0.0, 5e-45, -1e-45, 3e-38, 0.0, 1e-40];
+    let nonnegative: Vec<f32> = near_zero.iter().map(|x| x.abs()).collect();
+    // Large enough for every limit (the factor 255 / 1e-30 is finite), still tiny.
+    let small: Vec<f32> = near_zero.iter().map(|x| x * 1e7).collect();
+    let small_nonnegative: Vec<f32> = small.iter().map(|x| x.abs()).collect();
+    let (rows, row_len) = (2, 4);
+    let stride = CodeRows::row_stride(row_len);
+    for (name, kernels) in backends() {
+        let mut digits = (vec![9i8; 8], vec![9i8; 8]);
+        let found = kernels.quantize_digits(&near_zero, (&mut digits.0, &mut digits.1));
+        assert_eq!(found, (1.0, true), "{name} digits");
+        assert!(digits.0.iter().chain(&digits.1).all(|&d| d == 0), "{name}");
+        let mut codes = vec![9i16; rows * stride];
+        assert_eq!(kernels.quantize_codes(&near_zero, row_len, &mut codes), 1.0);
+        assert!(codes.iter().all(|&c| c == 0), "{name} codes");
+        let mut codes = vec![9i16; rows * stride];
+        let scale = kernels.quantize_narrow_codes(&near_zero, row_len, &mut codes);
+        assert_eq!(scale, 1.0, "{name} narrow codes");
+        assert!(codes.iter().all(|&c| c == 0), "{name} narrow codes");
+        let (mut bytes, mut sums) = (vec![9i8; rows * stride], vec![9i32; rows]);
+        let scale = kernels.quantize_signed_bytes(&near_zero, row_len, &mut bytes, &mut sums);
+        assert_eq!(scale, 1.0, "{name} signed bytes");
+        assert!(bytes.iter().all(|&b| b == 0) && sums == [0, 0], "{name}");
+        for form in [NarrowForm::Bytes, NarrowForm::Digits] {
+            let mut scratch = vec![9i8; 16];
+            let scale = kernels.quantize_narrow(&nonnegative, &mut scratch, form);
+            assert_eq!(scale, 1.0, "{name} narrow {form:?}");
+            let used = if form == NarrowForm::Bytes { 8 } else { 16 };
+            assert!(scratch[..used].iter().all(|&b| b == 0), "{name} {form:?}");
+        }
+        // Just above: codes computed, the largest magnitude (the first value) on the
+        // largest code.
+        let largest = small[0];
+        let mut codes = vec![0i16; rows * stride];
+        let scale = kernels.quantize_codes(&small, row_len, &mut codes);
+        assert_eq!(scale, largest / 16383.0, "{name} small codes");
+        assert_eq!(codes[0], 16383, "{name} small codes {codes:?}");
+        let mut scratch = vec![0i8; 8];
+        let scale = kernels.quantize_narrow(&small_nonnegative, &mut scratch, NarrowForm::Bytes);
+        assert_eq!(scale, largest / 255.0, "{name} small bytes");
+        assert_eq!(scratch[0] as u8, 255, "{name} small bytes {scratch:?}");
+    }
+    let mut symmetric = [9i8; 8];
+    assert_eq!(ops::quantize_symmetric(&near_zero, &mut symmetric), 1.0);
+    assert_eq!(symmetric, [0; 8]);
+}
+
 /// One int8 convolution problem: quantized input, kernel in the engine's layout, parameters.
 struct Int8Case {
     shape: ConvShape,

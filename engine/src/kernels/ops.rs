@@ -439,8 +439,9 @@ unsafe fn round_half_away(value: f32) -> i32 {
 
 /// Symmetric per-tensor int8 quantization: `scale = max |x| / 127`,
 /// `q = round(x / scale)` (ties away from zero) in [-127, 127]. Returns the scale: 1 for an
-/// all-zero input, NaN when the input holds NaN or infinity (so the NaN reaches the result
-/// and the engine reports it instead of acting on it).
+/// all-zero or near-zero input, NaN when the input holds NaN or infinity (so the NaN reaches
+/// the result and the engine reports it instead of acting on it), with zero codes
+/// (`code_inverse`).
 pub fn quantize_symmetric(input: &[f32], output: &mut [i8]) -> f32 {
     quantize_symmetric_signs(input, output).0
 }
@@ -450,19 +451,17 @@ pub fn quantize_symmetric(input: &[f32], output: &mut [i8]) -> f32 {
 #[inline(always)]
 pub fn quantize_symmetric_signs(input: &[f32], output: &mut [i8]) -> (f32, bool) {
     let largest = largest_magnitude(input);
-    if !largest.is_finite() {
-        output.fill(0);
-        return (f32::NAN, true);
-    }
-    if largest == 0.0 {
-        output.fill(0);
-        return (1.0, true);
-    }
-    let inverse = 127.0 / largest;
+    let inverse = match code_inverse(largest, 127.0) {
+        Ok(inverse) => inverse,
+        Err(scale) => {
+            output.fill(0);
+            return (scale, true);
+        }
+    };
     let mut lowest = 0i8;
     for (q, &x) in output.iter_mut().zip(input) {
-        // SAFETY: x is finite with |x| <= largest (finite, nonzero), so |x * inverse| is at
-        // most 127 and a rounding.
+        // SAFETY: x is finite with |x| <= largest, and `inverse = 127 / largest` is finite
+        // (`code_inverse`), so |x * inverse| is at most 127 and a rounding.
         *q = unsafe { round_half_away(x * inverse) }.clamp(-127, 127) as i8;
         lowest = lowest.min(*q);
     }
@@ -489,17 +488,22 @@ pub const SPLIT_CODE_LIMIT: f32 = 16383.0;
 /// Base of the two digits of a 14-bit activation code: `code = high * 128 + low`.
 pub const DIGIT_BASE: f32 = 128.0;
 
-/// The scale a 15-bit quantization reports when every code is zero: 1 for an all-zero
-/// input, NaN for a non-finite one (so the NaN reaches the result and the engine reports
-/// it); `None` when `largest` (the input's largest magnitude) leaves codes to compute.
+/// `limit / largest`, the factor that takes an input whose largest magnitude is `largest`
+/// to codes of at most `limit`; or, where every code is zero, the scale to report: NaN for
+/// a non-finite input (so the NaN reaches the result and the engine reports it), 1 for an
+/// all-zero one and for one so close to zero that the factor overflows (`largest` below
+/// `limit / f32::MAX`: 4.8e-35 for 15-bit codes, 3.7e-37 for signed bytes), whose values are
+/// zero to any layer after it (the next bias, GroupNorm's epsilon).
 #[inline(always)]
-fn zero_code_scale(largest: f32) -> Option<f32> {
-    if largest == 0.0 {
-        Some(1.0)
-    } else if !largest.is_finite() {
-        Some(f32::NAN)
+fn code_inverse(largest: f32, limit: f32) -> Result<f32, f32> {
+    if !largest.is_finite() {
+        return Err(f32::NAN);
+    }
+    let inverse = limit / largest;
+    if inverse.is_finite() {
+        Ok(inverse)
     } else {
-        None
+        Err(1.0)
     }
 }
 
@@ -507,7 +511,7 @@ fn zero_code_scale(largest: f32) -> Option<f32> {
 /// from zero, in [-16383, 16383].
 ///
 /// # Safety
-/// `x` is finite and |x| <= `largest`, which is finite and nonzero.
+/// `x` is finite and |x| <= `largest`, and `inverse` is finite (`code_inverse`).
 #[inline(always)]
 unsafe fn split_code(x: f32, inverse: f32) -> i32 {
     // SAFETY: |x * inverse| is at most 16383 (the caller's promise), finite, and a rounding.
@@ -521,21 +525,23 @@ unsafe fn split_code(x: f32, inverse: f32) -> i32 {
 /// same weights with int8 dot products and forms `128 high + low`, the exact code sum:
 /// activations within 3e-5 of their range (7 bits: 4e-3, which cost more accuracy
 /// than the int8 weights did) at the price of twice the integer products.
-/// Returns the scale (1 for an all-zero input, NaN for a non-finite one, with zero digits)
-/// and whether every code is nonnegative.
+/// Returns the scale (1 for an all-zero or near-zero input, NaN for a non-finite one, with
+/// zero digits: `code_inverse`) and whether every code is nonnegative.
 #[inline(always)]
 pub fn quantize_split_signs(input: &[f32], high: &mut [i8], low: &mut [i8]) -> (f32, bool) {
     let largest = largest_magnitude(input);
-    if let Some(scale) = zero_code_scale(largest) {
-        high.fill(0);
-        low.fill(0);
-        return (scale, true);
-    }
-    let inverse = SPLIT_CODE_LIMIT / largest;
+    let inverse = match code_inverse(largest, SPLIT_CODE_LIMIT) {
+        Ok(inverse) => inverse,
+        Err(scale) => {
+            high.fill(0);
+            low.fill(0);
+            return (scale, true);
+        }
+    };
     let mut lowest = 0i32;
     for ((h, l), &x) in high.iter_mut().zip(low.iter_mut()).zip(input) {
-        // SAFETY: x is one of the values `largest` was taken over, which is finite and
-        // nonzero.
+        // SAFETY: x is one of the values `largest` was taken over, and `code_inverse` gave
+        // a finite `inverse`.
         let code = unsafe { split_code(x, inverse) };
         // An arithmetic shift floors, so `low` is the nonnegative remainder.
         *h = (code >> 7) as i8;
@@ -549,8 +555,8 @@ pub fn quantize_split_signs(input: &[f32], high: &mut [i8], low: &mut [i8]) -> (
 /// rows of `row_stride >= row_len` codes (the padding codes, up to whole input-channel
 /// quads, set to 0): `scale = max |x| / 16383` over the whole input, `code = round(x /
 /// scale)` (ties away from zero) in [-16383, 16383], as i16 (the U-Net's activations,
-/// signed, for 16-bit integer dot products). Returns the scale (1 for an all-zero input,
-/// NaN for a non-finite one, with zero codes).
+/// signed, for 16-bit integer dot products). Returns the scale (1 for an all-zero or
+/// near-zero input, NaN for a non-finite one, with zero codes: `code_inverse`).
 #[inline(always)]
 pub fn quantize_rows_codes(input: &[f32], rows: (usize, usize), codes: &mut [i16]) -> f32 {
     quantize_rows_whole(input, rows, codes, SPLIT_CODE_LIMIT)
@@ -558,8 +564,8 @@ pub fn quantize_rows_codes(input: &[f32], rows: (usize, usize), codes: &mut [i16
 
 /// Symmetric quantization to whole codes of at most `limit` in magnitude (an integer below
 /// 2^15), rows of `row_len` values into rows of `row_stride` i16 codes, the padding 0;
-/// returns the scale, `max |x| / limit` (1 for an all-zero input, NaN for a non-finite one,
-/// with zero codes).
+/// returns the scale, `max |x| / limit` (1 for an all-zero or near-zero input, NaN for a
+/// non-finite one, with zero codes: `code_inverse`).
 #[inline(always)]
 fn quantize_rows_whole(
     input: &[f32],
@@ -568,11 +574,13 @@ fn quantize_rows_whole(
     limit: f32,
 ) -> f32 {
     let largest = largest_magnitude(input);
-    if let Some(scale) = zero_code_scale(largest) {
-        codes.fill(0);
-        return scale;
-    }
-    let inverse = limit / largest;
+    let inverse = match code_inverse(largest, limit) {
+        Ok(inverse) => inverse,
+        Err(scale) => {
+            codes.fill(0);
+            return scale;
+        }
+    };
     let bound = limit as i32;
     for (row, codes) in input
         .chunks_exact(row_len)
@@ -581,7 +589,8 @@ fn quantize_rows_whole(
         let (codes, padding) = codes.split_at_mut(row_len);
         for (code, &x) in codes.iter_mut().zip(row) {
             // SAFETY: |x * inverse| is at most `limit` (x is one of the values `largest` was
-            // taken over), finite, and a rounding.
+            // taken over, `inverse = limit / largest` finite by `code_inverse`), and a
+            // rounding.
             *code = unsafe { round_half_away(x * inverse) }.clamp(-bound, bound) as i16;
         }
         padding.fill(0);
@@ -596,7 +605,8 @@ pub const SIGNED_BYTE_CODE_LIMIT: f32 = 127.0;
 /// the input: `scale = max |x| / 127`, `code = round(x / scale)` (ties away from zero) in
 /// [-127, 127], one signed byte a value, rows of `row_len` padded with zero codes to
 /// `row_stride` as [`quantize_rows_codes`] pads them; `row_sums[r]` is row `r`'s code sum.
-/// Returns the scale (1 for an all-zero input, NaN for a non-finite one, with zero codes).
+/// Returns the scale (1 for an all-zero or near-zero input, NaN for a non-finite one, with
+/// zero codes: `code_inverse`).
 #[inline(always)]
 pub fn quantize_rows_signed_bytes(
     input: &[f32],
@@ -605,19 +615,21 @@ pub fn quantize_rows_signed_bytes(
     row_sums: &mut [i32],
 ) -> f32 {
     let largest = largest_magnitude(input);
-    if let Some(scale) = zero_code_scale(largest) {
-        codes.fill(0);
-        row_sums.fill(0);
-        return scale;
-    }
-    let inverse = SIGNED_BYTE_CODE_LIMIT / largest;
+    let inverse = match code_inverse(largest, SIGNED_BYTE_CODE_LIMIT) {
+        Ok(inverse) => inverse,
+        Err(scale) => {
+            codes.fill(0);
+            row_sums.fill(0);
+            return scale;
+        }
+    };
     let rows = input.chunks_exact(row_len);
     for ((row, codes), row_sum) in rows.zip(codes.chunks_exact_mut(row_stride)).zip(row_sums) {
         let (codes, padding) = codes.split_at_mut(row_len);
         let mut sum = 0;
         for (code, &x) in codes.iter_mut().zip(row) {
-            // SAFETY: |x * inverse| is at most 127, finite (x is one of the values `largest`
-            // was taken over), and a rounding.
+            // SAFETY: |x * inverse| is at most 127 (x is one of the values `largest` was taken
+            // over, `inverse = 127 / largest` finite by `code_inverse`), and a rounding.
             let value = unsafe { round_half_away(x * inverse) }.clamp(-127, 127);
             *code = value as i8;
             sum += value;
@@ -643,7 +655,7 @@ pub const BYTE_CODE_LIMIT: f32 = 255.0;
 /// from zero, in [0, 255] (a negative value, which no ReLU output is, becomes 0).
 ///
 /// # Safety
-/// `x` is finite and |x| <= `largest`, which is finite and nonzero.
+/// `x` is finite and |x| <= `largest`, and `inverse` is finite (`code_inverse`).
 #[inline(always)]
 unsafe fn byte_code(x: f32, inverse: f32) -> i32 {
     // SAFETY: |x * inverse| is at most 255 (the caller's promise), finite, and a rounding.
@@ -654,17 +666,20 @@ unsafe fn byte_code(x: f32, inverse: f32) -> i32 {
 /// of it: `scale = max |x| / 255`, `code = round(x / scale)` (ties away from zero) in
 /// [0, 255], one byte a value: the narrow activations, whose byte products are half the
 /// two digit planes' of [`quantize_split_signs`]. Returns the scale (1 for an all-zero
-/// input, NaN for a non-finite one, with zero codes).
+/// or near-zero input, NaN for a non-finite one, with zero codes: `code_inverse`).
 #[inline(always)]
 pub fn quantize_bytes(input: &[f32], bytes: &mut [u8]) -> f32 {
     let largest = largest_magnitude(input);
-    if let Some(scale) = zero_code_scale(largest) {
-        bytes.fill(0);
-        return scale;
-    }
-    let inverse = BYTE_CODE_LIMIT / largest;
+    let inverse = match code_inverse(largest, BYTE_CODE_LIMIT) {
+        Ok(inverse) => inverse,
+        Err(scale) => {
+            bytes.fill(0);
+            return scale;
+        }
+    };
     for (byte, &x) in bytes.iter_mut().zip(input) {
-        // SAFETY: x is one of the values `largest` was taken over, finite and nonzero.
+        // SAFETY: x is one of the values `largest` was taken over, and `code_inverse` gave
+        // a finite `inverse`.
         *byte = unsafe { byte_code(x, inverse) } as u8;
     }
     largest / BYTE_CODE_LIMIT
@@ -693,12 +708,14 @@ pub fn quantize_narrow(input: &[f32], scratch: &mut [i8], form: super::NarrowFor
 #[inline(always)]
 pub fn quantize_bytes_split(input: &[f32], high: &mut [i8], low: &mut [i8]) -> f32 {
     let largest = largest_magnitude(input);
-    if let Some(scale) = zero_code_scale(largest) {
-        high.fill(0);
-        low.fill(0);
-        return scale;
-    }
-    let inverse = BYTE_CODE_LIMIT / largest;
+    let inverse = match code_inverse(largest, BYTE_CODE_LIMIT) {
+        Ok(inverse) => inverse,
+        Err(scale) => {
+            high.fill(0);
+            low.fill(0);
+            return scale;
+        }
+    };
     for ((h, l), &x) in high.iter_mut().zip(low.iter_mut()).zip(input) {
         // SAFETY: as in `quantize_bytes`.
         let code = unsafe { byte_code(x, inverse) };
