@@ -1320,6 +1320,20 @@ fn symmetric_quantization_round_trips_within_half_a_step() {
     assert!(ops::quantize_symmetric(&[1.0, f32::INFINITY], &mut [0; 2]).is_nan());
 }
 
+/// The ID registers firmware reads say what the OS says (Linux, and qemu's user mode that
+/// CI's aarch64 runs use, emulate the reads): the firmware path's detection, checked at every
+/// emulated CPU level.
+#[cfg(all(target_arch = "aarch64", target_os = "linux"))]
+#[test]
+fn firmware_feature_registers_agree_with_the_os() {
+    use scdp_engine::kernels::aarch64::registers;
+    use std::arch::is_aarch64_feature_detected;
+    let dotprod = is_aarch64_feature_detected!("dotprod");
+    assert_eq!(registers::has_dotprod(), dotprod, "dot product");
+    let i8mm = is_aarch64_feature_detected!("i8mm") && dotprod;
+    assert_eq!(registers::has_i8mm(), i8mm, "i8mm");
+}
+
 /// An input so close to zero that `limit / max |x|` overflows f32 (max |x| below
 /// `limit / f32::MAX`: 4.8e-35 for 15-bit codes, 7.5e-37 for bytes, 3.7e-37 for signed
 /// bytes; a fuzzed layer input reached it) quantizes as all zeros with scale 1, like an

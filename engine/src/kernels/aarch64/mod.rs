@@ -69,7 +69,12 @@ pub(crate) mod int8 {
     pub(crate) use super::int8_lanes::DotQ as SignedBytes;
 }
 
-// Hosted builds ask the OS; firmware reads the ID registers.
+// Hosted builds ask the OS (the two functions below, which shadow the glob import, so it
+// brings nothing there); firmware reads the ID registers (`registers`), which not every OS
+// lets user code read.
+#[allow(unused_imports)]
+pub use registers::*;
+
 #[cfg(feature = "std")]
 use std::arch::is_aarch64_feature_detected;
 
@@ -86,34 +91,36 @@ pub fn has_i8mm() -> bool {
     is_aarch64_feature_detected!("i8mm") && has_dotprod()
 }
 
-/// The dot-product extension (`sdot`, FEAT_DotProd) is present: ID_AA64ISAR0_EL1.DP, bits
-/// 47:44, is 1 or more.
-#[cfg(not(feature = "std"))]
-pub fn has_dotprod() -> bool {
-    (id_register::<0>() >> 44) & 0xf >= 1
-}
-
-/// The int8 matrix multiply extension (`usdot`, `smmla`, FEAT_I8MM) is present, and the
-/// dot product: ID_AA64ISAR1_EL1.I8MM, bits 55:52, is 1 or more.
-#[cfg(not(feature = "std"))]
-pub fn has_i8mm() -> bool {
-    (id_register::<1>() >> 52) & 0xf >= 1 && has_dotprod()
-}
-
-/// ID_AA64ISAR0_EL1 (`N = 0`) or ID_AA64ISAR1_EL1 (`N = 1`), read directly where there is
-/// no OS to ask: allowed at EL1 (firmware), and emulated for EL0 by Linux (since 4.11) and
-/// by qemu's user mode.
-#[cfg(not(feature = "std"))]
-fn id_register<const N: usize>() -> u64 {
-    let value: u64;
-    // SAFETY: reading an ID register has no side effect; where EL0 may not read it the OS
-    // emulates the read (see above).
-    unsafe {
-        if N == 0 {
-            core::arch::asm!("mrs {0}, ID_AA64ISAR0_EL1", out(reg) value, options(nomem, nostack, preserves_flags));
-        } else {
-            core::arch::asm!("mrs {0}, ID_AA64ISAR1_EL1", out(reg) value, options(nomem, nostack, preserves_flags));
-        }
+/// The features read from the ID registers themselves: the engine's answer where there is
+/// no OS to ask (firmware, at EL1). On an OS, user code reads them only where the OS
+/// emulates the reads (Linux since 4.11, qemu's user mode); elsewhere (macOS) the read
+/// traps and ends the process: hosted code asks `aarch64::has_dotprod` and `has_i8mm`, the
+/// OS's answers, instead.
+pub mod registers {
+    /// The dot-product extension (`sdot`, FEAT_DotProd) is present: ID_AA64ISAR0_EL1.DP,
+    /// bits 47:44, is 1 or more.
+    pub fn has_dotprod() -> bool {
+        (id_register::<0>() >> 44) & 0xf >= 1
     }
-    value
+
+    /// The int8 matrix multiply extension (`usdot`, `smmla`, FEAT_I8MM) is present, and the
+    /// dot product: ID_AA64ISAR1_EL1.I8MM, bits 55:52, is 1 or more.
+    pub fn has_i8mm() -> bool {
+        (id_register::<1>() >> 52) & 0xf >= 1 && has_dotprod()
+    }
+
+    /// ID_AA64ISAR0_EL1 (`N = 0`) or ID_AA64ISAR1_EL1 (`N = 1`).
+    fn id_register<const N: usize>() -> u64 {
+        let value: u64;
+        // SAFETY: reading an ID register touches no memory and has no side effect (where
+        // EL0 may not read it and the OS does not emulate the read, it traps: see above).
+        unsafe {
+            if N == 0 {
+                core::arch::asm!("mrs {0}, ID_AA64ISAR0_EL1", out(reg) value, options(nomem, nostack, preserves_flags));
+            } else {
+                core::arch::asm!("mrs {0}, ID_AA64ISAR1_EL1", out(reg) value, options(nomem, nostack, preserves_flags));
+            }
+        }
+        value
+    }
 }
