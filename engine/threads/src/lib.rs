@@ -1,7 +1,7 @@
 //! The engine's [`Workers`] on threads: `count - 1` threads spawned once, beside the calling thread,
 //! which runs its own share of every call. Kernel calls come a few microseconds apart
 //! during an inference, far less than waking a parked thread takes, so the threads spin
-//! on the next call for a while ([`SPIN`]) and park only when none comes: between
+//! on the next call for a while (half a millisecond) and park only when none comes: between
 //! inferences. A call creates no thread and allocates nothing.
 //!
 //! The caller waits only for the pieces a thread has claimed, never for a thread to show

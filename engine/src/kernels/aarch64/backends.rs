@@ -321,7 +321,7 @@ impl Kernels for Dot {
         unsafe { super::bytes::checked_conv_bytes(shape, input, parameters, output, accumulate) }
     }
 
-    /// `sdot` takes whole bytes centred ([`super::bytes`]).
+    /// `sdot` takes whole bytes centred (the `bytes` module).
     fn narrow_form(&self) -> NarrowForm {
         NarrowForm::Bytes
     }

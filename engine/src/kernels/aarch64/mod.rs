@@ -1,10 +1,10 @@
 //! aarch64 kernels, chosen at run time from what the CPU reports: NEON (every aarch64
 //! application core: Cortex-A53, A72), NEON with the dot-product extension (`sdot`:
 //! Cortex-A55, A76, A78AE (Jetson Orin), Neoverse N1, Apple M1), and I8MM (`usdot`, and the
-//! matrix multiplies `usmmla` and `smmla` ([`mmla`]): Neoverse V1, V2, N2, Cortex-A510/A710
+//! matrix multiplies `usmmla` and `smmla` (`mmla`): Neoverse V1, V2, N2, Cortex-A510/A710
 //! and later, Apple M2 on).
 //!
-//! The f32 kernels are the shared bodies of `simd` on [`lanes::Neon8`], eight lanes as on
+//! The f32 kernels are the shared bodies of `simd` on `lanes::Neon8`, eight lanes as on
 //! AVX2, so they give AVX2's bits; the int8 convolutions are the shared tiles on
 //! `int8_lanes`, exact integer sums, so they give every backend's bits. Element-wise
 //! operations are the portable code, which the compiler vectorizes for NEON as it is.
