@@ -179,6 +179,16 @@ unsafe fn convolve<L: Lanes>(
 /// (`benches/README.md`, Zen 4).
 const STREAMING_PREFETCH: usize = 16384;
 
+/// Whole weight rows of `row_stride` floats that cover [`STREAMING_PREFETCH`] bytes: the
+/// distance the prefetches run ahead. A call cut by output channels reads a segment of each
+/// row; a distance of some rows and a part of one put the prefetches of 384-channel layers
+/// in the other worker's columns, and those layers' own weights came unasked (the door-open
+/// f32 loop on 2 threads 19.4-20.0 ms against 17.4-18.0 a whole number of rows ahead; one
+/// thread the same either way).
+fn prefetch_rows(row_stride: usize) -> usize {
+    STREAMING_PREFETCH.div_ceil(row_stride.max(1) * size_of::<f32>())
+}
+
 /// Bytes ahead of the columns being read that [`matvec`] asks the caches for (the f32 FiLM
 /// rows, 16 MB a step, one stream as the int8 ones: `int8::MATVEC_PREFETCH`).
 const MATVEC_PREFETCH: usize = 4096;
@@ -351,9 +361,9 @@ unsafe fn stream_tap<L: Lanes, const P: usize, const Q: usize>(
         let rows = (in_channels - first_row).min(STREAMED_ROWS);
         let weights =
             block[first_row * row_stride..][..(rows - 1) * row_stride + out_channels].as_ptr();
-        let ahead = weights.wrapping_byte_add(STREAMING_PREFETCH);
+        let ahead = weights.wrapping_add(prefetch_rows(row_stride) * row_stride);
         for channel in (0..vector_channels).step_by(L::WIDTH) {
-            // The lines `STREAMING_PREFETCH` ahead of the ones this vector reads, spread over
+            // The lines `prefetch_rows` ahead of the ones this vector reads, spread over
             // the loop (asked for all at once, they filled the line buffers and stalled it).
             for row in 0..rows {
                 prefetch_lines_into_l2(ahead.wrapping_add(row * row_stride + channel), 1);
