@@ -3034,6 +3034,10 @@ fn calls_cut_over_workers_give_the_whole_calls_bits_on_every_backend() {
         ConvShape::square((8, 8, 32), 64, 1, 2, 0),
         ConvShape::square((4, 5, 12), 16, 3, 1, 1),
         ConvShape::square((1, 37, 196), 64, 1, 1, 0),
+        // Weights over 4x the input (the trunk's last stages): blocks of output channels on
+        // the SIMD backends, whole blocks of 64 and a last one of 32.
+        ConvShape::square((4, 4, 64), 128, 3, 1, 1),
+        ConvShape::square((8, 6, 32), 96, 3, 2, 1),
     ];
     // 1-D: the U-Net's (blocks of 64 output channels, a partial last one, Add).
     let sequences = [
@@ -3069,6 +3073,23 @@ fn calls_cut_over_workers_give_the_whole_calls_bits_on_every_backend() {
                     // would change the SIMD sequences' order: they run whole.
                     if shape.in_height > 1 || name != "scalar" && shape.in_width <= 16 {
                         cut("f32 conv");
+                    }
+                    // The SIMD tiles cover output channels in whole vectors of 32 or 16.
+                    let map_by_channels = shape.in_height > 1
+                        && shape.weight_len() > 4 * shape.input_len()
+                        && shape.out_channels.is_multiple_of(32)
+                        && name != "scalar";
+                    if map_by_channels {
+                        let asked = kernels.conv_channels(
+                            shape,
+                            &input,
+                            &weight,
+                            &bias,
+                            0..0,
+                            &mut [],
+                            accumulate,
+                        );
+                        assert!(asked, "{what}: no channel form for a 2-D map");
                     }
                 }
                 let problem = Int8Case::random(&mut rng, *shape, true);

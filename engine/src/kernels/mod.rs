@@ -291,15 +291,15 @@ pub trait Kernels: Sync {
         each_pixel(self, shape, input, parameters, pixels, output)
     }
 
-    /// Output channels `channels` of [`conv`](Self::conv) on a 1-D convolution
-    /// (`in_height == 1`), into `output` (`[positions, channels.len()]`, holding those
-    /// channels' values before the call for [`Accumulate::Add`]; `bias` is the whole
-    /// layer's): bit for bit what `conv` writes at those channels, for `channels` starting
-    /// at a multiple of 64. Returns `false`, writing nothing, where this implementation has
-    /// no such form for `shape` (this default: never), whatever `channels`; so empty
-    /// `channels` only ask. The U-Net's f32 layers are cut by output channels over several
-    /// workers this way ([`split::Split`]), each worker reading its own share of the
-    /// weights.
+    /// Output channels `channels` of [`conv`](Self::conv), into `output` (`[positions,
+    /// channels.len()]`, holding those channels' values before the call for
+    /// [`Accumulate::Add`]; `bias` is the whole layer's): bit for bit what `conv` writes at
+    /// those channels, for `channels` starting at a multiple of 64 and ending at one or at
+    /// the last channel. Returns `false`, writing nothing, where this implementation has no
+    /// such form for `shape` (this default: never), whatever `channels`; so empty
+    /// `channels` only ask. The U-Net's f32 layers, and the trunk's small maps whose weights
+    /// outweigh their input, are cut by output channels over several workers this way
+    /// ([`split::Split`]), each worker reading its own share of the weights.
     #[allow(clippy::too_many_arguments)]
     fn conv_channels(
         &self,

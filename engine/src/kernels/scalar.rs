@@ -117,6 +117,24 @@ pub(crate) fn assert_conv_lengths(
     assert_eq!(output_len, shape.output_len());
 }
 
+/// The slice lengths [`Kernels::conv_channels`] promises on a 2-D map, and its channels:
+/// inside the output channels, from a multiple of 64 to one or to the last channel.
+pub(crate) fn assert_conv_columns(
+    shape: &ConvShape,
+    (input, weight, bias): (&[f32], &[f32], &[f32]),
+    columns: &core::ops::Range<usize>,
+    output_len: usize,
+) {
+    assert_eq!(input.len(), shape.input_len());
+    assert_eq!(weight.len(), shape.weight_len());
+    assert_eq!(bias.len(), shape.out_channels);
+    assert!(columns.start <= columns.end && columns.end <= shape.out_channels);
+    assert!(columns.start.is_multiple_of(64));
+    assert!(columns.end.is_multiple_of(64) || columns.end == shape.out_channels);
+    let positions = shape.out_height() * shape.out_width();
+    assert!(output_len >= positions * columns.len());
+}
+
 /// The slice lengths [`Kernels::conv_pixel`] promises, and the pixel inside the output.
 pub(crate) fn assert_conv_pixel_lengths(
     shape: &ConvShape,

@@ -3,7 +3,9 @@
 //! from the whole call, whatever the number of workers:
 //! - 2-D convolutions (the trunk, the projections): bands of output rows, each over the
 //!   input rows its taps read ([`ConvShape::row_band`]); the stem's pointwise patches:
-//!   runs of pixels;
+//!   runs of pixels. Small maps whose weights outweigh their input 4 to 1 (f32) or whose
+//!   bands would hold fewer pixels than the kernels compute at once (int8): blocks of
+//!   output channels, as below;
 //! - the U-Net's 1-D convolutions: blocks of 64 output channels, so each worker reads its
 //!   own share of the weights, which is where the loop's time goes (an int8 block's weights
 //!   lie together, [`INT8_CHANNEL_BLOCK`]; f32 ones are read a row segment at a time,
@@ -513,9 +515,13 @@ impl Kernels for Split<'_> {
         accumulate: Accumulate,
     ) {
         let kernels = self.kernels;
-        let channel_form = shape.in_height == 1
+        // A band of a 2-D map's rows reads every weight, a block of output channels the whole
+        // input, half of it written by the other core, whose lines come about 4x slower than
+        // weights stream from L3 (7 against 27 GB/s, docs/THREADS.md): blocks where the
+        // weights outweigh the input 4 to 1 (the small maps of the trunk's last stages).
+        let by_channels = (shape.in_height == 1 || shape.weight_len() > 4 * shape.input_len())
             && kernels.conv_channels(shape, input, weight, bias, 0..0, &mut [], accumulate);
-        if channel_form {
+        if by_channels {
             let block = |channels: Range<usize>, part: &mut [f32]| {
                 kernels.conv_channels(shape, input, weight, bias, channels, part, accumulate)
             };
@@ -526,10 +532,9 @@ impl Kernels for Split<'_> {
                 Accumulate::Overwrite => Store::Overwrite,
                 Accumulate::Add => Store::Continue,
             };
-            if !self.split_channels(shape, products, output, store, &block) {
-                kernels.conv(shape, input, weight, bias, output, accumulate)
+            if self.split_channels(shape, products, output, store, &block) {
+                return;
             }
-            return;
         }
         if shape.in_height == 1 {
             // A sequence without a channel form: the f32 kernels sum short and long

@@ -3,7 +3,9 @@
 
 use super::lanes::Neon8;
 use super::{int8, sequence};
-use crate::kernels::scalar::{Scalar, assert_conv_lengths, assert_conv_pixel_lengths};
+use crate::kernels::scalar::{
+    Scalar, assert_conv_columns, assert_conv_lengths, assert_conv_pixel_lengths,
+};
 use crate::kernels::simd;
 use crate::kernels::simd::f32_tile;
 use crate::kernels::simd::int8::{checked_conv, checked_conv_codes, checked_conv_pixel};
@@ -63,19 +65,25 @@ impl I8mm {
     }
 }
 
-/// [`f32_tile::conv`] compiled for NEON.
+/// [`f32_tile::conv_columns`] compiled for NEON: output channels `columns` (all, or those
+/// of `conv_channels`) into `output` (`[positions, columns.len()]`).
 ///
 /// # Safety
-/// NEON; the slices have the lengths `shape` implies; `out_channels` is a multiple of 16.
+/// NEON; `input`, `weight` and `bias` have the lengths `shape` implies, `output` at least
+/// `positions x columns.len()`; `out_channels` is a multiple of 16, and so are `columns`'
+/// ends.
 #[target_feature(enable = "neon")]
 unsafe fn conv_tiles(
     shape: &ConvShape,
     parameters: (&[f32], &[f32], &[f32]),
+    columns: core::ops::Range<usize>,
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
     // SAFETY: this function's contract is the body's.
-    unsafe { f32_tile::conv::<Neon8, PIXELS, 2>(shape, parameters, output, accumulate) }
+    unsafe {
+        f32_tile::conv_columns::<Neon8, PIXELS, 2>(shape, parameters, columns, output, accumulate)
+    }
 }
 
 /// [`f32_tile::conv_pixel`] compiled for NEON.
@@ -108,8 +116,37 @@ fn conv_f32(
     if !shape.out_channels.is_multiple_of(CHANNELS) {
         return Scalar.conv(shape, input, weight, bias, output, accumulate);
     }
+    let columns = 0..shape.out_channels;
     // SAFETY: NEON; the asserts above fix the slice lengths; out_channels is a multiple of 16.
-    unsafe { conv_tiles(shape, (input, weight, bias), output, accumulate) }
+    unsafe { conv_tiles(shape, (input, weight, bias), columns, output, accumulate) }
+}
+
+/// `Kernels::conv_channels` on NEON: the sequences' streaming kernel, or the 2-D tiles.
+fn conv_channels_f32(
+    shape: &ConvShape,
+    (input, weight, bias): (&[f32], &[f32], &[f32]),
+    channels: core::ops::Range<usize>,
+    output: &mut [f32],
+    accumulate: Accumulate,
+) -> bool {
+    if channels.end > bias.len() || channels.start > channels.end {
+        return false;
+    }
+    if shape.in_height > 1 {
+        if !shape.out_channels.is_multiple_of(CHANNELS) {
+            return false;
+        }
+        let parameters = (input, weight, bias);
+        assert_conv_columns(shape, parameters, &channels, output.len());
+        // SAFETY: NEON; the asserts fix the lengths, and the columns' ends are multiples of
+        // 16 (64, or out_channels).
+        unsafe { conv_tiles(shape, parameters, channels, output, accumulate) };
+        return true;
+    }
+    let parameters = (input, weight, &bias[channels.clone()]);
+    // SAFETY: the backends exist only on NEON targets.
+    unsafe { sequence::neon::conv_channels(shape, parameters, channels, output, accumulate) }
+        .is_some()
 }
 
 /// `Kernels::conv_pixel` on NEON.
@@ -188,15 +225,7 @@ macro_rules! shared_kernels {
             output: &mut [f32],
             accumulate: Accumulate,
         ) -> bool {
-            if channels.end > bias.len() || channels.start > channels.end {
-                return false;
-            }
-            let parameters = (input, weight, &bias[channels.clone()]);
-            // SAFETY: the backends exist only on NEON targets.
-            unsafe {
-                sequence::neon::conv_channels(shape, parameters, channels, output, accumulate)
-            }
-            .is_some()
+            conv_channels_f32(shape, (input, weight, bias), channels, output, accumulate)
         }
 
         fn matvec(&self, weight: &[f32], input: &[f32], base: &[f32], output: &mut [f32]) {

@@ -180,23 +180,23 @@ unsafe fn accumulate_rows<L: Lanes, const N: usize, const V: usize, const SKIPPI
     }
 }
 
-/// Adds the bias (and the existing output with [`Accumulate::Add`]) and stores the pixels
-/// of a tile from `first_pixel`.
+/// Adds the bias of output channels `channel..` (and the existing output with
+/// [`Accumulate::Add`]) and stores the pixels of a tile from `first_pixel`, at `column` of
+/// output rows `out_stride` floats long.
 ///
 /// # Safety
-/// The CPU supports `L`; `channel + V WIDTH <= out_channels`; the pixels are inside
-/// `output`.
+/// The CPU supports `L`; `column + V WIDTH <= out_stride`; the pixels are inside `output`.
 #[inline(always)]
 unsafe fn store_tile<L: Lanes, const V: usize>(
     sums: &[[L::Vector; V]],
     (bias, output): (&[f32], &mut [f32]),
-    out_channels: usize,
-    (first_pixel, channel): (usize, usize),
+    out_stride: usize,
+    (first_pixel, channel, column): (usize, usize, usize),
     accumulate: Accumulate,
 ) {
     let bias = &bias[channel..channel + V * L::WIDTH];
     for (pixel, sum) in sums.iter().enumerate() {
-        let out = &mut output[(first_pixel + pixel) * out_channels + channel..][..V * L::WIDTH];
+        let out = &mut output[(first_pixel + pixel) * out_stride + column..][..V * L::WIDTH];
         for (vector, &value) in sum.iter().enumerate() {
             let at = L::WIDTH * vector;
             // SAFETY: `out` and `bias` hold V WIDTH floats; each access covers WIDTH from
@@ -260,27 +260,34 @@ fn pass_taps(shape: &ConvShape, (row_chunks, column_chunks): (usize, usize), par
     }
 }
 
-/// The whole convolution, tiles of `N` consecutive output positions.
+/// Output channels `columns` of the convolution (all of them, or those of
+/// `Kernels::conv_channels`), tiles of `N` consecutive output positions, into `output`
+/// (`[positions, columns.len()]`, holding those channels' values before the call for
+/// [`Accumulate::Add`]); `bias` is the whole layer's. Each pixel's chain is the same
+/// whichever channels a call covers: the same bits.
 ///
 /// # Safety
-/// The CPU supports `L`; the slices have the lengths `shape` implies; `out_channels` is a
-/// multiple of `V WIDTH`.
+/// The CPU supports `L`; `input`, `weight` and `bias` have the lengths `shape` implies,
+/// `output` at least `positions x columns.len()`; `columns` lies inside `out_channels`, its
+/// start and length multiples of `V WIDTH`.
 #[inline(always)]
-pub(crate) unsafe fn conv<L: Lanes, const N: usize, const V: usize>(
+pub(crate) unsafe fn conv_columns<L: Lanes, const N: usize, const V: usize>(
     shape: &ConvShape,
     (input, weight, bias): (&[f32], &[f32], &[f32]),
+    columns: core::ops::Range<usize>,
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
     let positions = shape.out_height() * shape.out_width();
-    let out_channels = shape.out_channels;
+    let out_stride = columns.len();
     // Each pixel's FMA chain goes on across passes in the same order: the same bits as one.
     let chunks = passes(shape, V * L::WIDTH, accumulate);
     let parts = chunks.0 * chunks.1;
     // Channel blocks outside, pixels inside: a block's weights stay in the L2 cache while
     // every pixel reads them, instead of the whole kernel being streamed from L3 once per
     // pixel tile.
-    for channel in (0..out_channels).step_by(V * L::WIDTH) {
+    for channel in columns.clone().step_by(V * L::WIDTH) {
+        let column = channel - columns.start;
         for part in 0..parts {
             let taps = pass_taps(shape, chunks, part);
             let last = part + 1 == parts;
@@ -292,22 +299,18 @@ pub(crate) unsafe fn conv<L: Lanes, const N: usize, const V: usize>(
                     let start = if part == 0 {
                         [[L::zero(); V]; N]
                     } else {
-                        load_partial::<L, N, V>(output, out_channels, (first, count), channel)
+                        load_partial::<L, N, V>(output, out_stride, (first, count), column)
                     };
                     let taps = (taps.clone(), start);
                     let sums =
                         tile::<L, N, V>(shape, (input, weight), (first, count), channel, taps);
                     if last {
-                        let at = (first, channel);
+                        let at = (first, channel, column);
                         let out = (bias, &mut *output);
-                        store_tile::<L, V>(&sums[..count], out, out_channels, at, accumulate);
+                        store_tile::<L, V>(&sums[..count], out, out_stride, at, accumulate);
                     } else {
-                        store_partial::<L, V>(
-                            &sums[..count],
-                            output,
-                            out_channels,
-                            (first, channel),
-                        );
+                        let at = (first, column);
+                        store_partial::<L, V>(&sums[..count], output, out_stride, at);
                     }
                 }
             }
@@ -315,21 +318,22 @@ pub(crate) unsafe fn conv<L: Lanes, const N: usize, const V: usize>(
     }
 }
 
-/// The partial sums [`store_partial`] left for the tile's `count` pixels (zero past them).
+/// The partial sums [`store_partial`] left for the tile's `count` pixels (zero past them),
+/// at `column` of output rows `out_stride` floats long.
 ///
 /// # Safety
-/// The CPU supports `L`; the pixels and the block's `V WIDTH` channels are in `output`.
+/// The CPU supports `L`; the pixels and the block's `V WIDTH` columns are in `output`.
 #[inline(always)]
 unsafe fn load_partial<L: Lanes, const N: usize, const V: usize>(
     output: &[f32],
-    out_channels: usize,
+    out_stride: usize,
     (first, count): (usize, usize),
-    channel: usize,
+    column: usize,
 ) -> [[L::Vector; V]; N] {
     // SAFETY: the caller runs on `L`'s CPU.
     let mut sums = [[unsafe { L::zero() }; V]; N];
     for (pixel, sum) in sums.iter_mut().enumerate().take(count) {
-        let from = &output[(first + pixel) * out_channels + channel..][..V * L::WIDTH];
+        let from = &output[(first + pixel) * out_stride + column..][..V * L::WIDTH];
         for (vector, sum) in sum.iter_mut().enumerate() {
             // SAFETY: `from` holds V WIDTH floats; the caller runs on `L`'s CPU.
             *sum = unsafe { L::load(from.as_ptr().add(vector * L::WIDTH)) };
@@ -341,16 +345,16 @@ unsafe fn load_partial<L: Lanes, const N: usize, const V: usize>(
 /// Stores a tile's partial sums, without the bias, where [`load_partial`] finds them.
 ///
 /// # Safety
-/// The CPU supports `L`; the pixels and the block's `V WIDTH` channels are in `output`.
+/// The CPU supports `L`; the pixels and the block's `V WIDTH` columns are in `output`.
 #[inline(always)]
 unsafe fn store_partial<L: Lanes, const V: usize>(
     sums: &[[L::Vector; V]],
     output: &mut [f32],
-    out_channels: usize,
-    (first, channel): (usize, usize),
+    out_stride: usize,
+    (first, column): (usize, usize),
 ) {
     for (pixel, sum) in sums.iter().enumerate() {
-        let to = &mut output[(first + pixel) * out_channels + channel..][..V * L::WIDTH];
+        let to = &mut output[(first + pixel) * out_stride + column..][..V * L::WIDTH];
         for (vector, &sum) in sum.iter().enumerate() {
             // SAFETY: `to` holds V WIDTH floats; the caller runs on `L`'s CPU.
             unsafe { L::store(to.as_mut_ptr().add(vector * L::WIDTH), sum) };
@@ -358,10 +362,10 @@ unsafe fn store_partial<L: Lanes, const V: usize>(
     }
 }
 
-/// Output pixel `pixel` of [`conv`] (overwriting), into `output` (`out_channels` values).
+/// Output pixel `pixel` of [`conv_columns`] (overwriting), into `output` (`out_channels` values).
 ///
 /// # Safety
-/// As for [`conv`]; the pixel is in the output.
+/// As for [`conv_columns`] over every channel; the pixel is in the output.
 #[inline(always)]
 pub(crate) unsafe fn conv_pixel<L: Lanes>(
     shape: &ConvShape,
@@ -387,7 +391,7 @@ pub(crate) unsafe fn conv_pixel<L: Lanes>(
                 &sums,
                 out,
                 shape.out_channels,
-                (0, channel),
+                (0, channel, channel),
                 Accumulate::Overwrite,
             );
         }

@@ -7,7 +7,9 @@
 use super::lanes::Ymm;
 use super::sequence;
 use crate::kernels::ops::Activation;
-use crate::kernels::scalar::{Scalar, assert_conv_lengths, assert_conv_pixel_lengths};
+use crate::kernels::scalar::{
+    Scalar, assert_conv_columns, assert_conv_lengths, assert_conv_pixel_lengths,
+};
 use crate::kernels::simd::f32_tile;
 use crate::kernels::simd::sequence::Sequence;
 use crate::kernels::{Accumulate, CodeRows, ConvShape, DigitRows, Kernels};
@@ -32,20 +34,25 @@ impl Avx2 {
     }
 }
 
-/// The shared f32 body ([`f32_tile`]) compiled for AVX2 + FMA.
+/// The shared f32 body ([`f32_tile`]) compiled for AVX2 + FMA: output channels `columns`
+/// (all, or those of `conv_channels`) into `output` (`[positions, columns.len()]`).
 ///
 /// # Safety
-/// The CPU supports AVX2 and FMA; the slices have the lengths `shape` implies;
-/// `out_channels` is a multiple of 16.
+/// The CPU supports AVX2 and FMA; `input`, `weight` and `bias` have the lengths `shape`
+/// implies, `output` at least `positions x columns.len()`; `out_channels` is a multiple of
+/// 16, and so are `columns`' ends.
 #[target_feature(enable = "avx2,fma")]
 unsafe fn conv_tiles(
     shape: &ConvShape,
     parameters: (&[f32], &[f32], &[f32]),
+    columns: core::ops::Range<usize>,
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
     // SAFETY: this function's contract is the body's.
-    unsafe { f32_tile::conv::<Ymm, PIXELS, 2>(shape, parameters, output, accumulate) }
+    unsafe {
+        f32_tile::conv_columns::<Ymm, PIXELS, 2>(shape, parameters, columns, output, accumulate)
+    }
 }
 
 /// [`f32_tile::conv_pixel`] compiled for AVX2 + FMA.
@@ -95,9 +102,10 @@ impl Kernels for Avx2 {
         if !shape.out_channels.is_multiple_of(CHANNELS) {
             return Scalar.conv(shape, input, weight, bias, output, accumulate);
         }
+        let columns = 0..shape.out_channels;
         // SAFETY: `self` exists only when AVX2 and FMA were detected; the asserts above fix
         // the slice lengths, and out_channels is a multiple of 16.
-        unsafe { conv_tiles(shape, (input, weight, bias), output, accumulate) }
+        unsafe { conv_tiles(shape, (input, weight, bias), columns, output, accumulate) }
     }
 
     fn conv_channels(
@@ -112,6 +120,17 @@ impl Kernels for Avx2 {
     ) -> bool {
         if channels.end > bias.len() || channels.start > channels.end {
             return false;
+        }
+        if shape.in_height > 1 {
+            if !shape.out_channels.is_multiple_of(CHANNELS) {
+                return false;
+            }
+            let parameters = (input, weight, bias);
+            assert_conv_columns(shape, parameters, &channels, output.len());
+            // SAFETY: `self` exists only when AVX2 and FMA were detected; the asserts fix
+            // the lengths, and the columns' ends are multiples of 16 (64, or out_channels).
+            unsafe { conv_tiles(shape, parameters, channels, output, accumulate) };
+            return true;
         }
         let parameters = (input, weight, &bias[channels.clone()]);
         // SAFETY: `self` exists only when AVX2 and FMA were detected.

@@ -5,7 +5,7 @@
 use super::avx2::Avx2;
 use super::{avx512_f32, int8, sequence};
 use crate::kernels::ops::Activation;
-use crate::kernels::scalar::{assert_conv_lengths, assert_conv_pixel_lengths};
+use crate::kernels::scalar::{assert_conv_columns, assert_conv_lengths, assert_conv_pixel_lengths};
 use crate::kernels::{
     Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Kernels, NarrowForm, SignedByteRows,
 };
@@ -67,9 +67,10 @@ impl Kernels for Avx512 {
                 .conv(shape, input, weight, bias, output, accumulate);
         }
         assert_conv_lengths(shape, (input, weight, bias), output.len());
+        let columns = 0..shape.out_channels;
         // SAFETY: `self` exists only when AVX-512F was detected; `covers` holds and the
         // asserts fix the lengths.
-        unsafe { avx512_f32::conv(shape, (input, weight, bias), output, accumulate) }
+        unsafe { avx512_f32::conv(shape, (input, weight, bias), columns, output, accumulate) }
     }
 
     fn conv_channels(
@@ -89,6 +90,19 @@ impl Kernels for Avx512 {
         }
         if channels.end > bias.len() || channels.start > channels.end {
             return false;
+        }
+        if shape.in_height > 1 {
+            if !avx512_f32::covers(shape) {
+                let avx2 = self.avx2();
+                return avx2
+                    .conv_channels(shape, input, weight, bias, channels, output, accumulate);
+            }
+            let parameters = (input, weight, bias);
+            assert_conv_columns(shape, parameters, &channels, output.len());
+            // SAFETY: `self` exists only when AVX-512F was detected; `covers` holds and the
+            // asserts fix the lengths and the columns.
+            unsafe { avx512_f32::conv(shape, parameters, channels, output, accumulate) };
+            return true;
         }
         let parameters = (input, weight, &bias[channels.clone()]);
         // SAFETY: `self` exists only when AVX-512 F/BW/VL were detected.

@@ -30,14 +30,19 @@ pub fn covers(shape: &ConvShape) -> bool {
     shape.out_channels.is_multiple_of(CHANNELS) && shape.in_height > 1
 }
 
-/// [`Kernels::conv`](crate::kernels::Kernels::conv) for a shape [`covers`] accepts.
+/// Output channels `columns` of [`Kernels::conv`](crate::kernels::Kernels::conv) (all of
+/// them, or those of [`Kernels::conv_channels`](crate::kernels::Kernels::conv_channels):
+/// `output` is `[positions, columns.len()]`) for a shape [`covers`] accepts.
 ///
 /// # Safety
-/// The CPU supports AVX-512F; `covers(shape)`; the slices have the lengths `shape` implies.
+/// The CPU supports AVX-512F; `covers(shape)`; `input`, `weight` and `bias` have the lengths
+/// `shape` implies, `output` at least `positions x columns.len()`; `columns` lies inside
+/// `out_channels`, its start a multiple of 64 and its end one or `out_channels`.
 #[target_feature(enable = "avx512f")]
 pub unsafe fn conv(
     shape: &ConvShape,
     parameters: (&[f32], &[f32], &[f32]),
+    columns: core::ops::Range<usize>,
     output: &mut [f32],
     accumulate: Accumulate,
 ) {
@@ -46,14 +51,19 @@ pub unsafe fn conv(
     // waste nothing there.
     let positions = shape.out_height() * shape.out_width();
     let waste = positions.div_ceil(PIXELS) * PIXELS - positions;
-    // SAFETY: this function's contract is the body's (64 = 4 x 16 lanes, 32 = 2 x 16).
+    // SAFETY: this function's contract is the body's (64 = 4 x 16 lanes, 32 = 2 x 16; the
+    // columns' ends are multiples of both, or the channels').
     unsafe {
         if shape.out_channels.is_multiple_of(WIDE_CHANNELS) {
-            f32_tile::conv::<Zmm, WIDE_PIXELS, 4>(shape, parameters, output, accumulate)
+            f32_tile::conv_columns::<Zmm, WIDE_PIXELS, 4>(
+                shape, parameters, columns, output, accumulate,
+            )
         } else if 4 * waste > positions {
-            f32_tile::conv::<Zmm, SMALL_MAP_PIXELS, 2>(shape, parameters, output, accumulate)
+            f32_tile::conv_columns::<Zmm, SMALL_MAP_PIXELS, 2>(
+                shape, parameters, columns, output, accumulate,
+            )
         } else {
-            f32_tile::conv::<Zmm, PIXELS, 2>(shape, parameters, output, accumulate)
+            f32_tile::conv_columns::<Zmm, PIXELS, 2>(shape, parameters, columns, output, accumulate)
         }
     }
 }
