@@ -145,14 +145,10 @@ pub fn convolve_pixels(
     pixels: &[(usize, usize)],
     output: &mut [f32],
 ) {
-    let (out_width, out_channels) = (shape.out_width(), shape.out_channels);
     match *weight {
         Weight::F32(weights) => {
             let input = &values[..shape.input_len()];
-            for &(row, column) in pixels {
-                let out = &mut output[(row * out_width + column) * out_channels..][..out_channels];
-                kernels.conv_pixel(shape, input, weights, bias, (row, column), out);
-            }
+            kernels.conv_pixels(shape, input, weights, bias, pixels, output)
         }
         Weight::Int8 {
             values: weights,

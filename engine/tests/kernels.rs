@@ -3018,6 +3018,57 @@ fn epilogues_run_on_each_block_of_groups_with_the_whole_blocks_bits_on_every_bac
     }
 }
 
+/// A projection evaluated at chosen cells (`conv_pixels`), cut into runs of pixels over 2,
+/// 3 and 5 workers, writes each cell's dense value (the bits of the whole map's call) and
+/// nothing else; a list that repeats a cell is not cut (each piece writes its own cells'
+/// values), and gives the same values.
+#[test]
+fn cells_cut_over_workers_give_the_dense_bits_on_every_backend() {
+    let mut rng = Lcg(43);
+    let shape = ConvShape::square((9, 7, 48), 64, 3, 1, 1);
+    let input = rng.vec(shape.input_len());
+    let weight = rng.vec(shape.weight_len());
+    let bias = rng.vec(shape.out_channels);
+    let cells: Vec<(usize, usize)> = (0..23).map(|i| ((i * 5) % 9, (i * 3) % 7)).collect();
+    let repeated: Vec<(usize, usize)> = cells.iter().chain(&cells[..3]).copied().collect();
+    let channels = shape.out_channels;
+    for (name, kernels) in backends() {
+        let mut dense = vec![0.0; shape.output_len()];
+        kernels.conv(
+            &shape,
+            &input,
+            &weight,
+            &bias,
+            &mut dense,
+            Accumulate::Overwrite,
+        );
+        for count in [2, 3, 5] {
+            let workers = Backwards::new(count);
+            let mut scratch = vec![0.0f32; 1024];
+            let split = Split::new(kernels, &workers, &mut scratch).cutting_every_call();
+            for (list, cut) in [(&cells, true), (&repeated, false)] {
+                let what = format!("{name}, {count} workers, {} cells", list.len());
+                let mut map = vec![f32::NAN; shape.output_len()];
+                split.conv_pixels(&shape, &input, &weight, &bias, list, &mut map);
+                let calls = workers.calls.swap(0, std::sync::atomic::Ordering::Relaxed);
+                assert_eq!(calls > 0, cut, "{what}: cut");
+                for (pixel, (found, expected)) in map
+                    .chunks_exact(channels)
+                    .zip(dense.chunks_exact(channels))
+                    .enumerate()
+                {
+                    let cell = (pixel / shape.out_width(), pixel % shape.out_width());
+                    if list.contains(&cell) {
+                        assert_same_bits(found, expected, &format!("{what}, cell {cell:?}"));
+                    } else {
+                        assert!(found.iter().all(|v| v.is_nan()), "{what}: {cell:?} written");
+                    }
+                }
+            }
+        }
+    }
+}
+
 /// Every call `Split` cuts (bands of output rows of 2-D convolutions, runs of pixels of
 /// pointwise ones, blocks of output channels of 1-D ones, runs of matrix rows) gives the bits
 /// of the whole call on the same backend, for 2, 3 and 5 workers (uneven and empty pieces),

@@ -249,6 +249,27 @@ pub trait Kernels: Sync {
         );
     }
 
+    /// [`conv_pixel`](Self::conv_pixel) at each of `pixels` (`(row, column)`, inside the
+    /// output), into `output`, the whole output map: only those pixels are written. The
+    /// f32 projections evaluated on demand ask for the cells an inference step's anchors
+    /// sample, a few dozen at a time.
+    #[allow(clippy::too_many_arguments)]
+    fn conv_pixels(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[f32],
+        bias: &[f32],
+        pixels: &[(usize, usize)],
+        output: &mut [f32],
+    ) {
+        let (out_width, out_channels) = (shape.out_width(), shape.out_channels);
+        for &(row, column) in pixels {
+            let out = &mut output[(row * out_width + column) * out_channels..][..out_channels];
+            self.conv_pixel(shape, input, weight, bias, (row, column), out);
+        }
+    }
+
     /// [`conv_pixel`](Self::conv_pixel) for [`conv_int8`](Self::conv_int8).
     #[allow(clippy::too_many_arguments)]
     fn conv_int8_pixel(

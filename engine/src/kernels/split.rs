@@ -467,6 +467,19 @@ fn share(units: usize, pieces: usize, piece: usize) -> Range<usize> {
     units * piece / pieces..units * (piece + 1) / pieces
 }
 
+/// Pixels at most that [`Split`]'s `conv_pixels` cuts over the workers (the pyramid asks for
+/// 48 at a time): each piece writes its own pixels' values, so the list is checked for
+/// repeats first, in `count^2 / 2` comparisons.
+const MAX_CUT_PIXELS: usize = 64;
+
+/// Whether no pixel appears twice in `pixels`.
+fn distinct(pixels: &[(usize, usize)]) -> bool {
+    pixels
+        .iter()
+        .enumerate()
+        .all(|(index, pixel)| !pixels[index + 1..].contains(pixel))
+}
+
 /// A mutable slice handed to several pieces, each taking its own disjoint part.
 #[derive(Clone, Copy, Debug)]
 struct Shared {
@@ -560,6 +573,41 @@ impl Kernels for Split<'_> {
     ) {
         self.kernels
             .conv_pixel(shape, input, weight, bias, pixel, output)
+    }
+
+    fn conv_pixels(
+        &self,
+        shape: &ConvShape,
+        input: &[f32],
+        weight: &[f32],
+        bias: &[f32],
+        pixels: &[(usize, usize)],
+        output: &mut [f32],
+    ) {
+        let (kernels, count) = (self.kernels, pixels.len());
+        let pieces = self.pieces(count, count * shape.weight_len());
+        let (out_width, out_channels) = (shape.out_width(), shape.out_channels);
+        let inside =
+            |&(row, column): &(usize, usize)| row < shape.out_height() && column < out_width;
+        let cut = pieces > 1
+            && count <= MAX_CUT_PIXELS
+            && output.len() >= shape.output_len()
+            && pixels.iter().all(inside)
+            && distinct(pixels);
+        if !cut {
+            return kernels.conv_pixels(shape, input, weight, bias, pixels, output);
+        }
+        let out = Shared::new(output);
+        self.workers.run(pieces, &|piece| {
+            for &(row, column) in &pixels[share(count, pieces, piece)] {
+                let at = (row * out_width + column) * out_channels;
+                // SAFETY: the pixels are distinct and inside the map (checked above), so their
+                // values are disjoint from every other piece's; the caller does not touch
+                // `output` until `run` has returned.
+                let values = unsafe { out.slice(at..at + out_channels) };
+                kernels.conv_pixel(shape, input, weight, bias, (row, column), values);
+            }
+        });
     }
 
     fn conv_int8_pixel(
