@@ -69,27 +69,16 @@ pub(crate) mod int8 {
     pub(crate) use super::int8_lanes::DotQ as SignedBytes;
 }
 
-// Hosted builds ask the OS (the two functions below, which shadow the glob import, so it
-// brings nothing there); firmware reads the ID registers (`registers`), which not every OS
-// lets user code read.
+// Hosted builds ask the OS (`os`, whose two functions shadow the glob import, so it brings
+// nothing there); firmware reads the ID registers (`registers`), which not every OS lets
+// user code read.
 #[allow(unused_imports)]
 pub use registers::*;
 
 #[cfg(feature = "std")]
-use std::arch::is_aarch64_feature_detected;
-
-/// The dot-product extension (`sdot`, FEAT_DotProd) is present, as the OS reports it.
+mod os;
 #[cfg(feature = "std")]
-pub fn has_dotprod() -> bool {
-    is_aarch64_feature_detected!("dotprod")
-}
-
-/// The int8 matrix multiply extension (`usdot`, `smmla`, FEAT_I8MM) is present, and the
-/// dot product, as the OS reports them.
-#[cfg(feature = "std")]
-pub fn has_i8mm() -> bool {
-    is_aarch64_feature_detected!("i8mm") && has_dotprod()
-}
+pub use os::{has_dotprod, has_i8mm};
 
 /// The features read from the ID registers themselves: the engine's answer where there is
 /// no OS to ask (firmware, at EL1). On an OS, user code reads them only where the OS
