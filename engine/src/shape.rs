@@ -134,6 +134,13 @@ impl ConvShape {
         self.out_height() * self.out_width() * self.out_channels
     }
 
+    /// Where output pixel `(row, column)`'s `out_channels` values lie in the output map
+    /// (`[out_height, out_width, out_channels]`).
+    pub const fn pixel_values(&self, (row, column): (usize, usize)) -> core::ops::Range<usize> {
+        let start = (row * self.out_width() + column) * self.out_channels;
+        start..start + self.out_channels
+    }
+
     pub const fn weight_len(&self) -> usize {
         self.kernel_height * self.kernel_width * self.in_channels * self.out_channels
     }

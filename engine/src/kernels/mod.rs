@@ -263,10 +263,9 @@ pub trait Kernels: Sync {
         pixels: &[(usize, usize)],
         output: &mut [f32],
     ) {
-        let (out_width, out_channels) = (shape.out_width(), shape.out_channels);
-        for &(row, column) in pixels {
-            let out = &mut output[(row * out_width + column) * out_channels..][..out_channels];
-            self.conv_pixel(shape, input, weight, bias, (row, column), out);
+        for &pixel in pixels {
+            let out = &mut output[shape.pixel_values(pixel)];
+            self.conv_pixel(shape, input, weight, bias, pixel, out);
         }
     }
 
@@ -934,17 +933,8 @@ pub fn each_pixel<K: Kernels + ?Sized>(
     pixels: &[(usize, usize)],
     output: &mut [f32],
 ) {
-    let (out_width, out_channels) = (shape.out_width(), shape.out_channels);
-    for &(row, column) in pixels {
-        let out = &mut output[(row * out_width + column) * out_channels..][..out_channels];
-        kernels.conv_int8_pixel(
-            shape,
-            input,
-            weight,
-            weight_scales,
-            bias,
-            (row, column),
-            out,
-        );
+    for &pixel in pixels {
+        let out = &mut output[shape.pixel_values(pixel)];
+        kernels.conv_int8_pixel(shape, input, weight, weight_scales, bias, pixel, out);
     }
 }

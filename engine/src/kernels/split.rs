@@ -586,9 +586,9 @@ impl Kernels for Split<'_> {
     ) {
         let (kernels, count) = (self.kernels, pixels.len());
         let pieces = self.pieces(count, count * shape.weight_len());
-        let (out_width, out_channels) = (shape.out_width(), shape.out_channels);
-        let inside =
-            |&(row, column): &(usize, usize)| row < shape.out_height() && column < out_width;
+        let inside = |&(row, column): &(usize, usize)| {
+            row < shape.out_height() && column < shape.out_width()
+        };
         let cut = pieces > 1
             && count <= MAX_CUT_PIXELS
             && output.len() >= shape.output_len()
@@ -599,13 +599,12 @@ impl Kernels for Split<'_> {
         }
         let out = Shared::new(output);
         self.workers.run(pieces, &|piece| {
-            for &(row, column) in &pixels[share(count, pieces, piece)] {
-                let at = (row * out_width + column) * out_channels;
+            for &pixel in &pixels[share(count, pieces, piece)] {
                 // SAFETY: the pixels are distinct and inside the map (checked above), so their
                 // values are disjoint from every other piece's; the caller does not touch
                 // `output` until `run` has returned.
-                let values = unsafe { out.slice(at..at + out_channels) };
-                kernels.conv_pixel(shape, input, weight, bias, (row, column), values);
+                let values = unsafe { out.slice(shape.pixel_values(pixel)) };
+                kernels.conv_pixel(shape, input, weight, bias, pixel, values);
             }
         });
     }
