@@ -761,6 +761,21 @@ fn run(args: &RunArgs) -> anyhow::Result<()> {
                 );
                 println!("{}", row.trim_end());
             }
+            #[cfg(feature = "pool-timing")]
+            if let Some(rows) = weights_tool::run::StageSamples::call_table(&samples[index]) {
+                println!(
+                    "  calling thread, median ms     between calls publishing  pieces  waiting  calls"
+                );
+                for (stage, row) in ["end to end, all frames", "end to end, newest frame only"]
+                    .iter()
+                    .zip(rows)
+                {
+                    println!(
+                        "  {stage:<29} {:>13.2} {:>10.2} {:>7.2} {:>8.2} {:>6}",
+                        row[0], row[1], row[2], row[3], row[4]
+                    );
+                }
+            }
         }
     }
     Ok(())

@@ -242,23 +242,24 @@ impl Runner {
     }
 
     /// Loads the model and a policy on the arena, its camera set to `inputs`', and hands the
-    /// policy to `then`.
+    /// policy to `then`, with the pool it runs on (none for one thread).
     fn with_policy<R>(
         &mut self,
         inputs: &RunInputs,
-        then: impl FnOnce(&mut Policy<'_, '_>) -> Result<R>,
+        then: impl FnOnce(&mut Policy<'_, '_>, Option<&ThreadPool>) -> Result<R>,
     ) -> Result<R> {
         let model = Model::from_bytes(self.weights.as_slice())
             .map_err(|error| anyhow::anyhow!("{error}"))?;
         let mut policy = Policy::with_kernels(&model, self.arena.as_mut_slice(), self.kernels)
             .map_err(|error| anyhow::anyhow!("{error}"))?;
-        if let Some(pool) = self.pools.get(&self.threads) {
+        let pool = self.pools.get(&self.threads);
+        if let Some(pool) = pool {
             policy = policy.with_workers(pool);
         }
         let camera = Camera::new(&inputs.intrinsics, &inputs.extrinsics)
             .map_err(|error| anyhow::anyhow!("camera: {error}"))?;
         policy.set_camera(camera);
-        then(&mut policy)
+        then(&mut policy, pool)
     }
 
     /// [`with_policy`](Self::with_policy), every frame of `inputs` pushed first (oldest
@@ -269,8 +270,8 @@ impl Runner {
         times: &mut StageTimes,
         then: impl FnOnce(&mut Policy<'_, '_>) -> Result<R>,
     ) -> Result<R> {
-        self.with_policy(inputs, |policy| {
-            push_frames(policy, inputs, times)?;
+        self.with_policy(inputs, |policy, _| {
+            push_frames(policy, inputs, times, &mut || ())?;
             then(policy)
         })
     }
@@ -321,12 +322,16 @@ fn push_frames(
     policy: &mut Policy<'_, '_>,
     inputs: &RunInputs,
     times: &mut StageTimes,
+    before_newest: &mut dyn FnMut(),
 ) -> Result<()> {
     let config = *policy.config();
     let frames = config.n_obs_steps as usize;
     let frame_bytes = inputs.images.len() / frames;
     let state_dim = config.state_dim as usize;
     for frame in 0..frames {
+        if frame == frames - 1 {
+            before_newest();
+        }
         let start = Instant::now();
         policy
             .push_observation(
@@ -399,6 +404,10 @@ pub struct StageSamples {
     denoise: Vec<Duration>,
     total: Vec<Duration>,
     streaming: Vec<Duration>,
+    /// The calling thread's time in and between the pool's calls, each run: the older
+    /// frames, then the newest frame and the loop.
+    #[cfg(feature = "pool-timing")]
+    calls: Vec<(scdp_threads::Timing, scdp_threads::Timing)>,
 }
 
 impl StageSamples {
@@ -416,6 +425,40 @@ impl StageSamples {
             ("4 end to end, newest frame only", all(|set| &set.streaming)),
         ])
     }
+
+    /// Medians over every run of `sets`, in ms, of the calling thread's time between the
+    /// pool's calls, publishing them, running pieces and waiting, and the calls' count:
+    /// end to end, then for the newest frame and the loop. `None` on one thread.
+    #[cfg(feature = "pool-timing")]
+    pub fn call_table(sets: &[StageSamples]) -> Option<[[f64; 5]; 2]> {
+        let runs: Vec<_> = sets.iter().flat_map(|set| &set.calls).collect();
+        if runs.iter().all(|(_, newest)| newest.calls == 0) {
+            return None;
+        }
+        let median = |part: &dyn Fn(&(scdp_threads::Timing, scdp_threads::Timing)) -> f64| {
+            let mut values: Vec<f64> = runs.iter().map(|run| part(run)).collect();
+            values.sort_by(f64::total_cmp);
+            values[values.len() / 2]
+        };
+        let ms = |duration: Duration| duration.as_secs_f64() * 1e3;
+        let row = |with_older: bool| {
+            let older = move |run: &(scdp_threads::Timing, scdp_threads::Timing)| {
+                if with_older {
+                    run.0
+                } else {
+                    Default::default()
+                }
+            };
+            [
+                median(&|run| ms(older(run).between + run.1.between)),
+                median(&|run| ms(older(run).publishing + run.1.publishing)),
+                median(&|run| ms(older(run).pieces + run.1.pieces)),
+                median(&|run| ms(older(run).waiting + run.1.waiting)),
+                median(&|run| (older(run).calls + run.1.calls) as f64),
+            ]
+        };
+        Some([row(true), row(false)])
+    }
 }
 
 /// Per-stage latency over `iterations` runs after one warm-up run.
@@ -428,16 +471,33 @@ pub fn bench(runner: &mut Runner, inputs: &RunInputs, iterations: usize) -> Resu
     let mut samples = StageSamples::default();
     // One model and one policy for every run, as a controller keeps them; each run starts
     // from an empty history. The first warms up.
-    runner.with_policy(inputs, |policy| {
+    runner.with_policy(inputs, |policy, pool| {
+        #[cfg(not(feature = "pool-timing"))]
+        let _ = pool;
+        #[cfg(feature = "pool-timing")]
+        let take = || pool.map(ThreadPool::take_timing).unwrap_or_default();
         for iteration in 0..=iterations {
             policy.reset();
             let mut times = StageTimes::default();
-            push_frames(policy, inputs, &mut times)?;
+            #[cfg(feature = "pool-timing")]
+            let mut older = {
+                take();
+                scdp_threads::Timing::default()
+            };
+            #[cfg(feature = "pool-timing")]
+            let mut before_newest = || older = take();
+            #[cfg(not(feature = "pool-timing"))]
+            let mut before_newest = || ();
+            push_frames(policy, inputs, &mut times, &mut before_newest)?;
             let start = Instant::now();
             policy
                 .infer_with(noise, inputs.held())
                 .map_err(|error| anyhow::anyhow!("inference: {error}"))?;
             times.denoise = start.elapsed();
+            #[cfg(feature = "pool-timing")]
+            if iteration > 0 {
+                samples.calls.push((older, take()));
+            }
             if iteration > 0 {
                 samples.encode.push(times.encode_newest);
                 samples.denoise.push(times.denoise);

@@ -77,9 +77,41 @@ unsafe impl Send for Shared {}
 pub struct ThreadPool {
     shared: Arc<Shared>,
     threads: Vec<JoinHandle<()>>,
-    /// One call at a time (the policy makes them one after the other anyway).
-    calls: Mutex<()>,
+    /// One call at a time (the policy makes them one after the other anyway); with the
+    /// `timing` feature, the calls' tally.
+    calls: Mutex<Tally>,
 }
+
+/// Where the calling thread's time went, from one [`ThreadPool::take_timing`] to the next
+/// (feature `timing`). The four parts add up to the time between the two.
+#[cfg(feature = "timing")]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Timing {
+    /// Calls handed out (those of more than one piece).
+    pub calls: usize,
+    /// Outside the calls: what runs whole on the calling thread (the model's own work and
+    /// kernel calls too small to cut).
+    pub between: Duration,
+    /// From a call's start until its first piece: waiting for the threads to have left the
+    /// previous call, and publishing this one.
+    pub publishing: Duration,
+    /// Running pieces: the calling thread's own, and any no thread had claimed.
+    pub pieces: Duration,
+    /// Waiting for the pieces the other threads claimed.
+    pub waiting: Duration,
+}
+
+#[cfg(feature = "timing")]
+#[derive(Debug, Default)]
+struct Tally {
+    timing: Timing,
+    /// When the last call (or the last `take_timing`) returned.
+    since: Option<Instant>,
+}
+
+#[cfg(not(feature = "timing"))]
+#[derive(Debug, Default)]
+struct Tally;
 
 impl core::fmt::Debug for ThreadPool {
     fn fmt(&self, formatter: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
@@ -95,6 +127,10 @@ impl ThreadPool {
     ///
     /// # Errors
     /// When the OS cannot create a thread.
+    #[cfg_attr(
+        not(feature = "timing"),
+        allow(clippy::default_constructed_unit_structs)
+    )]
     pub fn new(count: usize) -> std::io::Result<Self> {
         let count = count.max(1);
         let shared = Arc::new(Shared {
@@ -125,8 +161,24 @@ impl ThreadPool {
         Ok(ThreadPool {
             shared,
             threads,
-            calls: Mutex::new(()),
+            calls: Mutex::new(Tally::default()),
         })
+    }
+
+    /// The calling thread's time since the last call of this, and starts counting again.
+    /// The first call gives the calls since the pool started, and the time between them.
+    #[cfg(feature = "timing")]
+    pub fn take_timing(&self) -> Timing {
+        let mut tally = self
+            .calls
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner());
+        let now = Instant::now();
+        if let Some(since) = tally.since {
+            tally.timing.between += now - since;
+        }
+        tally.since = Some(now);
+        core::mem::take(&mut tally.timing)
     }
 }
 
@@ -214,8 +266,11 @@ impl Workers for ThreadPool {
         if pieces <= 1 || self.threads.is_empty() {
             return (0..pieces).for_each(work);
         }
+        #[cfg(feature = "timing")]
+        let entered = Instant::now();
         // A poisoned lock only means an earlier call panicked; the pool's state is whole.
-        let _call = self
+        #[cfg_attr(not(feature = "timing"), allow(unused_mut, unused_variables))]
+        let mut tally = self
             .calls
             .lock()
             .unwrap_or_else(|poisoned| poisoned.into_inner());
@@ -239,10 +294,26 @@ impl Workers for ThreadPool {
         for thread in &self.threads {
             thread.thread().unpark();
         }
+        #[cfg(feature = "timing")]
+        let published = Instant::now();
         take_pieces(shared, pieces, work);
+        #[cfg(feature = "timing")]
+        let ran = Instant::now();
         // Only pieces another thread claimed and is running are left to wait for.
         wait_for(|| shared.done.load(Ordering::Acquire) == pieces);
         shared.open.store(false, Ordering::SeqCst);
+        #[cfg(feature = "timing")]
+        {
+            let returned = Instant::now();
+            let since = tally.since.unwrap_or(entered);
+            let timing = &mut tally.timing;
+            timing.calls += 1;
+            timing.between += entered.saturating_duration_since(since);
+            timing.publishing += published - entered;
+            timing.pieces += ran - published;
+            timing.waiting += returned - ran;
+            tally.since = Some(returned);
+        }
         assert!(
             !shared.panicked.load(Ordering::Relaxed),
             "a piece of the work panicked"

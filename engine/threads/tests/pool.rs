@@ -60,3 +60,41 @@ fn a_panicking_piece_panics_the_call_and_the_pool_goes_on() {
     });
     assert_eq!(done.load(Ordering::Relaxed), 6);
 }
+
+/// Busy for at least `duration`: a piece or the caller's own work between calls.
+#[cfg(feature = "timing")]
+fn busy(duration: std::time::Duration) {
+    let start = std::time::Instant::now();
+    while start.elapsed() < duration {
+        std::hint::spin_loop();
+    }
+}
+
+#[cfg(feature = "timing")]
+#[test]
+fn timing_counts_each_call_and_splits_the_time_between_takes() {
+    use std::time::{Duration, Instant};
+    let pool = ThreadPool::new(2).unwrap();
+    let piece = Duration::from_micros(200);
+    let outside = Duration::from_micros(300);
+    let start = Instant::now();
+    pool.take_timing();
+    for _ in 0..10 {
+        busy(outside);
+        pool.run(2, &|_| busy(piece));
+    }
+    busy(outside);
+    let timing = pool.take_timing();
+    let elapsed = start.elapsed();
+    assert_eq!(timing.calls, 10);
+    // The caller ran at least one piece a call, and did its own work outside every call.
+    assert!(timing.pieces >= 10 * piece, "{timing:?}");
+    assert!(timing.between >= 11 * outside, "{timing:?}");
+    let parts = timing.between + timing.publishing + timing.pieces + timing.waiting;
+    assert!(parts <= elapsed, "{timing:?} in {elapsed:?}");
+    // A call of one piece runs on the caller without the pool: not a call, its time between.
+    pool.run(1, &|_| busy(piece));
+    let timing = pool.take_timing();
+    assert_eq!(timing.calls, 0);
+    assert!(timing.between >= piece, "{timing:?}");
+}
