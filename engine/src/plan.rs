@@ -20,7 +20,7 @@ use crate::config::{ModelConfig, PYRAMID_LEVELS, UNET_LEVELS};
 use crate::error::ConfigError;
 use crate::format::ALIGN;
 use crate::frame;
-use crate::kernels::CodeRows;
+use crate::kernels::{CodeRows, ops};
 
 const FLOATS_PER_LINE: usize = ALIGN / 4;
 
@@ -72,10 +72,12 @@ pub struct ArenaPlan {
     /// the stem's output overlaps the other three (they are not live yet).
     pub trunk_activation: usize,
     pub trunk_stem: usize,
-    /// Trunk phase too: the outputs of a convolution of a small map (at most
-    /// [`SMALL_MAP_PIXELS`]) cut by output channels over several workers, where bands of
-    /// its rows would hold fewer pixels than the kernels compute at once
-    /// ([`crate::kernels::Kernels::int8_pixel_block`]).
+    /// Trunk phase too, for a call cut over several workers: the outputs of a convolution
+    /// of a small map (at most [`SMALL_MAP_PIXELS`]) cut by output channels, where bands
+    /// of its rows would hold fewer pixels than the kernels compute at once
+    /// ([`crate::kernels::Kernels::int8_pixel_block`]); or a GroupNorm's moments, each
+    /// block of [`crate::kernels::ops::MOMENT_BLOCK`] pixels' apart, and its scales and
+    /// shifts.
     pub trunk_split: usize,
     /// Denoising phase: four work buffers and the two skips the up path reads.
     pub unet_work: usize,
@@ -287,6 +289,11 @@ impl Lengths {
             if height as u64 * width as u64 <= SMALL_MAP_PIXELS as u64 {
                 small_map = max(small_map, activation);
             }
+            // A GroupNorm cut over workers keeps each block of pixels' moments apart (two
+            // f64 a channel) and the channels' scales and shifts.
+            let channels = config.stage_channels(stage) as u64;
+            let blocks = (height as u64 * width as u64).div_ceil(ops::MOMENT_BLOCK as u64);
+            small_map = max(small_map, 4 * channels * blocks + 2 * channels);
             // Without reuse: each block's two convolutions (+ shortcut for the first block
             // of stages 2-4) and the max pool output have buffers of their own.
             let per_stage = if stage == 0 { 5 } else { 6 };

@@ -361,10 +361,26 @@ pub fn stem(
     const MOMENT_CHANNELS: usize = ops::GROUP_NORM_CHUNK;
     let mut sums = [0.0f64; MOMENT_CHANNELS];
     let mut squares = [0.0f64; MOMENT_CHANNELS];
-    let norm = layer.norm.as_ref().filter(|_| channels <= MOMENT_CHANNELS);
-    let padded = frame::pad_image(config, image, bytemuck::cast_slice_mut(pooled));
     // The plan makes room for at least one row of patches.
-    let band_rows = (quantized.values.len() / (out_width * PATCH_CHANNELS)).clamp(1, out_height);
+    let fitting = (quantized.values.len() / (out_width * PATCH_CHANNELS)).clamp(1, out_height);
+    // The moments taken band by band are GroupNorm's when every band but the last holds
+    // whole blocks of pixels; where the buffer holds too few rows for that, the map is
+    // normalized whole after the convolution.
+    let block_rows = ops::MOMENT_BLOCK / gcd(out_width, ops::MOMENT_BLOCK);
+    let whole_blocks = match fitting < out_height {
+        true => fitting - fitting % block_rows,
+        false => fitting,
+    };
+    let band_rows = if whole_blocks > 0 {
+        whole_blocks
+    } else {
+        fitting
+    };
+    let norm = layer
+        .norm
+        .as_ref()
+        .filter(|_| channels <= MOMENT_CHANNELS && whole_blocks > 0);
+    let padded = frame::pad_image(config, image, bytemuck::cast_slice_mut(pooled));
     for first_row in (0..out_height).step_by(band_rows) {
         let rows = band_rows.min(out_height - first_row);
         let band = ConvShape::square((rows, out_width, PATCH_CHANNELS), channels, 1, 1, 0);
@@ -411,6 +427,14 @@ pub fn stem(
             kernels.max_pool_3x3_stride_2(map, map_shape, pooled);
         }
     }
+}
+
+/// Greatest common divisor.
+const fn gcd(mut a: usize, mut b: usize) -> usize {
+    while b != 0 {
+        (a, b) = (b, a % b);
+    }
+    a
 }
 
 /// Encodes `image` (RGB bytes of the config's size) into `frame`: the five projected maps,

@@ -2355,10 +2355,12 @@ fn max_pool_is_bit_identical_on_every_backend() {
 }
 
 /// The stem's GroupNorm taken apart: per-channel moments added band by band, then the
-/// normalization applied inside the max pool. On every backend, over bands of a few rows,
-/// it must give the scalar reference's GroupNorm followed by its max pool, bit for bit
-/// (the moments are the same f64 additions in the same order), on the stem shapes and odd
-/// ones, with negative values.
+/// normalization applied inside the max pool. On every backend, over bands of a few rows
+/// (whole blocks of `MOMENT_BLOCK` pixels, or the whole map where its rows are too narrow
+/// for a few to make one), it must give the scalar reference's GroupNorm followed by its
+/// max pool, bit for bit (the moments are the same f64 additions in the same order), on
+/// the stem shapes and odd ones. The values lie far from zero against their spread, so that
+/// the moments' f64 sums, added in another order, would round differently and show it.
 #[test]
 fn banded_moments_and_normalizing_pool_equal_group_norm_then_pool() {
     use scdp_engine::config::conv_output;
@@ -2366,17 +2368,18 @@ fn banded_moments_and_normalizing_pool_equal_group_norm_then_pool() {
     let mut rng = Lcg(43);
     // (height, width, channels, groups, band rows)
     let shapes = [
-        (120, 160, 64, 4, 9),
+        (120, 160, 64, 4, 10),
         (64, 64, 64, 4, 7),
-        (7, 5, 24, 3, 2),
-        (3, 2, 40, 5, 1),
+        (9, 32, 24, 3, 4),
+        (7, 5, 24, 3, 7),
+        (3, 2, 40, 5, 3),
         (1, 1, 8, 2, 1),
     ];
     for &(height, width, channels, groups, band_rows) in &shapes {
         let data: Vec<f32> = rng
             .vec(height * width * channels)
             .iter()
-            .map(|x| x * 3.0 + 0.25)
+            .map(|x| x * 0.25 + 3000.0)
             .collect();
         let gamma = rng.vec(channels);
         let beta = rng.vec(channels);
@@ -3295,6 +3298,138 @@ fn byte_convolutions_refuse_more_inputs_than_the_zero_row_holds() {
         assert!(
             call.is_err(),
             "{name} ran a byte convolution over {inputs} inputs"
+        );
+    }
+}
+
+/// The trunk's passes over a whole map, cut over workers (`Split`): GroupNorm (each block of
+/// pixels' moments apart, added in order, then the scales and shifts applied by runs), the
+/// quantizations of a layer's input (the largest magnitude of each run, then each run's
+/// codes from the whole input's), and the residual add. On every backend, 2, 3 and 5
+/// workers running the pieces in reverse order: the whole call's bits, its scale and its
+/// sign flag; maps of a partial last block, of one block (run whole), of signed and of
+/// nonnegative values, and inputs that are all zero, hold a NaN or an infinity.
+#[test]
+fn map_passes_cut_over_workers_give_the_whole_calls_bits_on_every_backend() {
+    let mut rng = Lcg(47);
+    // (positions, channels, groups)
+    let maps: [(usize, usize, usize); 4] =
+        [(300, 64, 32), (129, 128, 32), (64, 40, 5), (1000, 16, 4)];
+    for (name, kernels) in backends() {
+        for count in [2, 3, 5] {
+            let workers = Backwards::new(count);
+            // GroupNorm keeps f64 moments in the scratch: one on 8-byte boundaries.
+            let mut scratch = vec![0.0f64; 32 * 1024];
+            let scratch: &mut [f32] = bytemuck::cast_slice_mut(&mut scratch);
+            let split = Split::new(kernels, &workers, scratch).cutting_every_call();
+            let cut = |what: &str, expected: bool| {
+                let calls = workers.calls.swap(0, std::sync::atomic::Ordering::Relaxed);
+                assert_eq!(calls > 0, expected, "{name}, {count} workers: {what} cut");
+            };
+            for &(positions, channels, groups) in &maps {
+                let what = format!("{name}, {count} workers, {positions}x{channels}");
+                let blocks = positions.div_ceil(ops::MOMENT_BLOCK);
+                // Far from zero against their spread, so that the moments' f64 sums round
+                // differently in another order and the outputs show it.
+                let data: Vec<f32> = rng
+                    .vec(positions * channels)
+                    .iter()
+                    .map(|x| x * 0.25 + 3000.0)
+                    .collect();
+                let (gamma, beta) = (rng.vec(channels), rng.vec(channels));
+                for activation in [Activation::Relu, Activation::None] {
+                    let norm = |kernels: &dyn Kernels| {
+                        let mut values = data.clone();
+                        let affine = (&gamma[..], &beta[..]);
+                        kernels.group_norm(&mut values, channels, groups, affine, activation);
+                        values
+                    };
+                    let found = norm(&split);
+                    cut("group norm", blocks > 1);
+                    assert_same_bits(&found, &norm(kernels), &format!("{what} group norm"));
+                }
+                let source = rng.vec(data.len());
+                let add = |kernels: &dyn Kernels| {
+                    let mut values = data.clone();
+                    kernels.add_activate(&mut values, &source, Activation::Relu);
+                    values
+                };
+                let found = add(&split);
+                cut("residual add", true);
+                assert_same_bits(&found, &add(kernels), &format!("{what} add"));
+            }
+            let mut inputs: Vec<Vec<f32>> = vec![rng.vec(777), vec![0.0; 300]];
+            let nonnegative: Vec<f32> = rng.vec(1025).iter().map(|x| x.abs()).collect();
+            inputs.push(nonnegative);
+            for special in [f32::NAN, f32::INFINITY] {
+                let mut values = rng.vec(500);
+                values[321] = special;
+                inputs.push(values);
+            }
+            for input in &inputs {
+                let len = input.len();
+                let what = format!("{name}, {count} workers, {len} values");
+                let digits = |kernels: &dyn Kernels| {
+                    let (mut high, mut low) = (vec![7i8; len], vec![7i8; len]);
+                    let (scale, nonnegative) =
+                        kernels.quantize_digits(input, (&mut high, &mut low));
+                    (scale.to_bits(), nonnegative, high, low)
+                };
+                let found = digits(&split);
+                cut("quantize digits", true);
+                assert_eq!(found, digits(kernels), "{what}: digits");
+                for form in [NarrowForm::Bytes, NarrowForm::Digits] {
+                    let narrow = |kernels: &dyn Kernels| {
+                        let mut codes = vec![7i8; 2 * len + 3];
+                        let scale = kernels.quantize_narrow(input, &mut codes, form);
+                        (scale.to_bits(), codes)
+                    };
+                    let found = narrow(&split);
+                    cut("quantize narrow", true);
+                    assert_eq!(found, narrow(kernels), "{what}: narrow {form:?}");
+                }
+            }
+        }
+    }
+}
+
+/// A part of an input quantized for the whole input's largest magnitude: values outside
+/// it (a caller's mistake) take the nearest end instead of overflowing a code, on every
+/// backend; inside it, the part's codes are the whole input's.
+#[test]
+fn quantizing_a_part_for_a_given_largest_keeps_codes_in_range() {
+    let input = [0.5f32, -3.0, 9.0, f32::NAN, -0.25, 2.0];
+    for (name, kernels) in backends() {
+        let (mut high, mut low) = (vec![0i8; 6], vec![0i8; 6]);
+        let (scale, _) = kernels.quantize_digits_within(&input, 2.0, (&mut high, &mut low));
+        assert_eq!(scale, 2.0 / ops::SPLIT_CODE_LIMIT, "{name}");
+        let codes: Vec<i32> = high
+            .iter()
+            .zip(&low)
+            .map(|(&h, &l)| 128 * h as i32 + l as i32)
+            .collect();
+        assert_eq!(
+            codes,
+            [4096, -16383, 16383, -16383, -2048, 16383],
+            "{name}: digits"
+        );
+        let mut bytes = vec![0i8; 6];
+        kernels.quantize_narrow_within(&input, 2.0, (&mut bytes, &mut []), NarrowForm::Bytes);
+        let bytes: Vec<u8> = bytes.iter().map(|&b| b as u8).collect();
+        assert_eq!(bytes, [64, 0, 255, 0, 0, 255], "{name}: bytes");
+        // Inside the range, the part's codes are what quantizing the whole gives there.
+        let whole = [0.5f32, -1.0, 2.0, 0.125];
+        let (mut high, mut low) = (vec![0i8; 4], vec![0i8; 4]);
+        let expected = kernels.quantize_digits(&whole, (&mut high, &mut low));
+        let (mut part_high, mut part_low) = (vec![0i8; 2], vec![0i8; 2]);
+        let largest = kernels.largest_magnitude(&whole);
+        let found =
+            kernels.quantize_digits_within(&whole[2..], largest, (&mut part_high, &mut part_low));
+        assert_eq!(found.0.to_bits(), expected.0.to_bits(), "{name}: scale");
+        assert_eq!(
+            (&part_high[..], &part_low[..]),
+            (&high[2..], &low[2..]),
+            "{name}: part"
         );
     }
 }

@@ -540,10 +540,41 @@ pub trait Kernels: Sync {
 
     /// [`ops::quantize_split_signs`]: 15-bit symmetric quantization of `input`, one scale
     /// for all of it, into two int8 digit planes; returns the scale and whether every code
-    /// is nonnegative. Element-wise, like the two methods below: implementations compile
-    /// the portable code for their vectors and give the same bits.
+    /// is nonnegative. Element-wise, like the methods below: implementations compile the
+    /// portable code for their vectors and give the same bits.
     fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {
         ops::quantize_split_signs(input, digits.0, digits.1)
+    }
+
+    /// [`ops::largest_magnitude`], what a quantization's scale comes from: that of several
+    /// parts of an input, the larger of each two ([`ops::larger_magnitude`]), is the whole's.
+    fn largest_magnitude(&self, input: &[f32]) -> f32 {
+        ops::largest_magnitude(input)
+    }
+
+    /// [`quantize_digits`](Self::quantize_digits) of a part of an input whose largest
+    /// magnitude is `largest`: that part of the whole input's digits, the scale, and whether
+    /// the part's codes are nonnegative ([`ops::quantize_split_signs_within`]).
+    fn quantize_digits_within(
+        &self,
+        input: &[f32],
+        largest: f32,
+        digits: (&mut [i8], &mut [i8]),
+    ) -> (f32, bool) {
+        ops::quantize_split_signs_within(input, largest, digits.0, digits.1)
+    }
+
+    /// [`quantize_narrow`](Self::quantize_narrow) of a part of an input whose largest
+    /// magnitude is `largest`, into `codes`: the part's bytes, or its parts of the two digit
+    /// planes ([`ops::quantize_narrow_within`]).
+    fn quantize_narrow_within(
+        &self,
+        input: &[f32],
+        largest: f32,
+        codes: (&mut [i8], &mut [i8]),
+        form: NarrowForm,
+    ) -> f32 {
+        ops::quantize_narrow_within(input, largest, codes, form)
     }
 
     /// The form in which this implementation takes narrow codes fastest: whole bytes for
@@ -618,6 +649,17 @@ pub trait Kernels: Sync {
         activation: Activation,
     ) {
         ops::group_norm(data, channels, groups, gamma, beta, activation)
+    }
+
+    /// [`ops::affine_activate`]: `activation(x * scale + shift)` per channel, in place.
+    fn affine_activate(
+        &self,
+        data: &mut [f32],
+        channels: usize,
+        affine: (&[f32], &[f32]),
+        activation: Activation,
+    ) {
+        ops::affine_activate(data, channels, affine, activation)
     }
 
     /// [`epilogue::conv_then`] where this implementation runs it its own way (cut over

@@ -199,7 +199,7 @@ fn moments_per_group(
         channel_sums.fill(0.0);
         channel_squares.fill(0.0);
         let span = start..start + len;
-        add_span_moments(
+        add_block_moments(
             data,
             channels,
             span,
@@ -224,15 +224,74 @@ fn moments_per_group(
     }
 }
 
+/// Positions whose moments [`group_norm`] sums on their own before adding them to the
+/// map's: a map's moments are the same sums whichever way its blocks are shared out, so
+/// several workers can each measure their own blocks ([`add_channel_moments`]).
+pub const MOMENT_BLOCK: usize = 64;
+
 /// Adds each channel's sum and sum of squares over the pixels of `data` (`[positions,
-/// channels]`) to `sums[c]` and `squares[c]`, in f64, pixels in memory order:
-/// [`group_norm`]'s per-channel moments, so a map's bands passed in order (from zero sums)
-/// make the same additions as the whole map, and [`group_scale_shift`] then gives
+/// channels]`) to `sums[c]` and `squares[c]`, in f64: [`group_norm`]'s per-channel moments.
+/// Each block of [`MOMENT_BLOCK`] pixels from `data`'s start is summed from zero in memory
+/// order, then added to the sums, blocks in order; so a map's bands passed in order make
+/// the same additions as the whole map when each band but the last holds whole blocks, as
+/// do its blocks' sums taken apart and added in order, and [`group_scale_shift`] then gives
 /// [`group_norm`]'s bits. Lets a map be measured band by band while each band is still in
-/// the caches.
+/// the caches, or its blocks by several workers.
 #[inline(always)]
-pub fn add_channel_moments(data: &[f32], channels: usize, moments: (&mut [f64], &mut [f64])) {
-    add_span_moments(data, channels, 0..channels, moments);
+pub fn add_channel_moments(
+    data: &[f32],
+    channels: usize,
+    (sums, squares): (&mut [f64], &mut [f64]),
+) {
+    for start in (0..channels).step_by(CHANNELS) {
+        let span = start..(start + CHANNELS).min(channels);
+        let moments = (&mut sums[span.clone()], &mut squares[span.clone()]);
+        add_block_moments(data, channels, span, moments);
+    }
+}
+
+/// [`add_span_moments`] a block of [`MOMENT_BLOCK`] pixels at a time, each block's sums
+/// from zero, then added to `sums` and `squares` (at most [`CHANNELS`] channels).
+#[inline(always)]
+fn add_block_moments(
+    data: &[f32],
+    channels: usize,
+    span: core::ops::Range<usize>,
+    (sums, squares): (&mut [f64], &mut [f64]),
+) {
+    let len = span.len();
+    let mut block_sums = [0.0f64; CHANNELS];
+    let mut block_squares = [0.0f64; CHANNELS];
+    let (block_sums, block_squares) = (&mut block_sums[..len], &mut block_squares[..len]);
+    for block in data.chunks(MOMENT_BLOCK * channels) {
+        block_sums.fill(0.0);
+        block_squares.fill(0.0);
+        add_span_moments(block, channels, span.clone(), (block_sums, block_squares));
+        for (sum, &block_sum) in sums[..len].iter_mut().zip(&*block_sums) {
+            *sum += block_sum;
+        }
+        for (square, &block_square) in squares[..len].iter_mut().zip(&*block_squares) {
+            *square += block_square;
+        }
+    }
+}
+
+/// `activation(x * scale + shift)` per channel over `[positions, channels]` `data`, in place:
+/// [`group_norm`]'s last step, the same arithmetic, for a map whose moments were taken apart
+/// ([`add_channel_moments`], [`group_scale_shift`]).
+#[inline(always)]
+pub fn affine_activate(
+    data: &mut [f32],
+    channels: usize,
+    (scale, shift): (&[f32], &[f32]),
+    activation: Activation,
+) {
+    let (scale, shift) = (&scale[..channels], &shift[..channels]);
+    for pixel in data.chunks_exact_mut(channels) {
+        for ((x, &a), &b) in pixel.iter_mut().zip(scale).zip(shift) {
+            *x = activate(*x * a + b, activation);
+        }
+    }
 }
 
 /// Adds, for each channel `span.start + c` of `data`'s pixels (`channels` values each), the
@@ -472,13 +531,61 @@ pub fn quantize_symmetric_signs(input: &[f32], output: &mut [i8]) -> (f32, bool)
 /// infinity. |x| as bits: for numbers the integer order is the float order, and NaN patterns
 /// sort above infinity, so one integer maximum finds max |x| or reports a non-finite input.
 /// It vectorizes; a float fold that must notice NaN does not (it was a fifth of the int8
-/// trunk's time).
+/// trunk's time). The same order makes the largest of several parts' results the whole
+/// input's ([`larger_magnitude`]).
 #[inline(always)]
-fn largest_magnitude(input: &[f32]) -> f32 {
+pub fn largest_magnitude(input: &[f32]) -> f32 {
     let bits = input
         .iter()
         .fold(0u32, |largest, &x| largest.max(x.to_bits() & 0x7fff_ffff));
     f32::from_bits(bits)
+}
+
+/// The larger of two [`largest_magnitude`] results, as [`largest_magnitude`] orders them
+/// (a non-finite one wins): the largest magnitude of two parts of an input is the whole's.
+#[inline(always)]
+pub fn larger_magnitude(a: f32, b: f32) -> f32 {
+    f32::from_bits(a.to_bits().max(b.to_bits()))
+}
+
+/// Where a quantizer's largest magnitude comes from.
+#[derive(Clone, Copy)]
+enum Largest {
+    /// [`largest_magnitude`] of the very input being quantized (made only by
+    /// [`Largest::of`]): every value lies inside it.
+    Own(f32),
+    /// A caller's, for a part of a larger input: the values are held inside it.
+    Given(f32),
+}
+
+impl Largest {
+    #[inline(always)]
+    fn of(input: &[f32]) -> Self {
+        Largest::Own(largest_magnitude(input))
+    }
+
+    #[inline(always)]
+    fn value(self) -> f32 {
+        match self {
+            Largest::Own(largest) | Largest::Given(largest) => largest,
+        }
+    }
+
+    /// `x`, one of the input's values, inside `[-largest, largest]`: itself for the
+    /// input's own largest; held inside a given one (NaN to `-largest`), which is the
+    /// identity for a part of an input whose largest magnitude it is, and keeps a code's
+    /// rounding in range whatever a caller gives. Finite wherever `code_inverse` accepted
+    /// the largest.
+    #[inline(always)]
+    fn hold(self, x: f32) -> f32 {
+        match self {
+            Largest::Own(_) => x,
+            Largest::Given(largest) => {
+                let x = if x > -largest { x } else { -largest };
+                if x < largest { x } else { largest }
+            }
+        }
+    }
 }
 
 /// Largest code of the trunk's activation scheme: 14 bits and a sign, so that a code splits
@@ -529,8 +636,27 @@ unsafe fn split_code(x: f32, inverse: f32) -> i32 {
 /// zero digits: `code_inverse`) and whether every code is nonnegative.
 #[inline(always)]
 pub fn quantize_split_signs(input: &[f32], high: &mut [i8], low: &mut [i8]) -> (f32, bool) {
-    let largest = largest_magnitude(input);
-    let inverse = match code_inverse(largest, SPLIT_CODE_LIMIT) {
+    split_signs(input, Largest::of(input), high, low)
+}
+
+/// [`quantize_split_signs`] of `input`, a part of a map whose largest magnitude
+/// ([`largest_magnitude`]) is `largest`: that part of the whole map's digits, its scale, and
+/// whether this part's codes are nonnegative. Values outside `[-largest, largest]` (none,
+/// for the map's own largest) take the nearest end.
+#[inline(always)]
+pub fn quantize_split_signs_within(
+    input: &[f32],
+    largest: f32,
+    high: &mut [i8],
+    low: &mut [i8],
+) -> (f32, bool) {
+    split_signs(input, Largest::Given(largest), high, low)
+}
+
+/// [`quantize_split_signs`] for `largest`.
+#[inline(always)]
+fn split_signs(input: &[f32], largest: Largest, high: &mut [i8], low: &mut [i8]) -> (f32, bool) {
+    let inverse = match code_inverse(largest.value(), SPLIT_CODE_LIMIT) {
         Ok(inverse) => inverse,
         Err(scale) => {
             high.fill(0);
@@ -540,15 +666,15 @@ pub fn quantize_split_signs(input: &[f32], high: &mut [i8], low: &mut [i8]) -> (
     };
     let mut lowest = 0i32;
     for ((h, l), &x) in high.iter_mut().zip(low.iter_mut()).zip(input) {
-        // SAFETY: x is one of the values `largest` was taken over, and `code_inverse` gave
-        // a finite `inverse`.
-        let code = unsafe { split_code(x, inverse) };
+        // SAFETY: `hold` gives a finite x at most `largest` in magnitude (`code_inverse`
+        // accepted it), and `code_inverse` gave a finite `inverse`.
+        let code = unsafe { split_code(largest.hold(x), inverse) };
         // An arithmetic shift floors, so `low` is the nonnegative remainder.
         *h = (code >> 7) as i8;
         *l = (code & 127) as i8;
         lowest = lowest.min(code);
     }
-    (largest / SPLIT_CODE_LIMIT, lowest >= 0)
+    (largest.value() / SPLIT_CODE_LIMIT, lowest >= 0)
 }
 
 /// The 15-bit codes of [`quantize_split_signs`] kept whole, rows of `row_len` values into
@@ -669,8 +795,13 @@ unsafe fn byte_code(x: f32, inverse: f32) -> i32 {
 /// or near-zero input, NaN for a non-finite one, with zero codes: `code_inverse`).
 #[inline(always)]
 pub fn quantize_bytes(input: &[f32], bytes: &mut [u8]) -> f32 {
-    let largest = largest_magnitude(input);
-    let inverse = match code_inverse(largest, BYTE_CODE_LIMIT) {
+    bytes_of(input, Largest::of(input), bytes)
+}
+
+/// [`quantize_bytes`] for `largest`.
+#[inline(always)]
+fn bytes_of(input: &[f32], largest: Largest, bytes: &mut [u8]) -> f32 {
+    let inverse = match code_inverse(largest.value(), BYTE_CODE_LIMIT) {
         Ok(inverse) => inverse,
         Err(scale) => {
             bytes.fill(0);
@@ -678,11 +809,11 @@ pub fn quantize_bytes(input: &[f32], bytes: &mut [u8]) -> f32 {
         }
     };
     for (byte, &x) in bytes.iter_mut().zip(input) {
-        // SAFETY: x is one of the values `largest` was taken over, and `code_inverse` gave
-        // a finite `inverse`.
-        *byte = unsafe { byte_code(x, inverse) } as u8;
+        // SAFETY: `hold` gives a finite x at most `largest` in magnitude (`code_inverse`
+        // accepted it), and `code_inverse` gave a finite `inverse`.
+        *byte = unsafe { byte_code(largest.hold(x), inverse) } as u8;
     }
-    largest / BYTE_CODE_LIMIT
+    largest.value() / BYTE_CODE_LIMIT
 }
 
 /// [`quantize_bytes`] into the front of `scratch` in `form`: whole bytes (`input.len()`
@@ -690,13 +821,41 @@ pub fn quantize_bytes(input: &[f32], bytes: &mut [u8]) -> f32 {
 #[inline(always)]
 pub fn quantize_narrow(input: &[f32], scratch: &mut [i8], form: super::NarrowForm) -> f32 {
     let len = input.len();
+    let codes = match form {
+        super::NarrowForm::Bytes => (&mut scratch[..len], &mut [][..]),
+        super::NarrowForm::Digits => scratch[..2 * len].split_at_mut(len),
+    };
+    narrow(input, Largest::of(input), codes, form)
+}
+
+/// [`quantize_narrow`] of a part of a map whose largest magnitude is `largest`, into
+/// `codes`: the part's bytes (the first, `input.len()` of them), or its two digit planes'
+/// parts, as [`quantize_split_signs_within`] is of [`quantize_split_signs`].
+#[inline(always)]
+pub fn quantize_narrow_within(
+    input: &[f32],
+    largest: f32,
+    (first, second): (&mut [i8], &mut [i8]),
+    form: super::NarrowForm,
+) -> f32 {
+    narrow(input, Largest::Given(largest), (first, second), form)
+}
+
+/// [`quantize_narrow_within`] for `largest`.
+#[inline(always)]
+fn narrow(
+    input: &[f32],
+    largest: Largest,
+    (first, second): (&mut [i8], &mut [i8]),
+    form: super::NarrowForm,
+) -> f32 {
+    let len = input.len();
     match form {
         super::NarrowForm::Bytes => {
-            quantize_bytes(input, bytemuck::cast_slice_mut(&mut scratch[..len]))
+            bytes_of(input, largest, bytemuck::cast_slice_mut(&mut first[..len]))
         }
         super::NarrowForm::Digits => {
-            let (high, low) = scratch[..2 * len].split_at_mut(len);
-            quantize_bytes_split(input, high, low)
+            bytes_split(input, largest, &mut first[..len], &mut second[..len])
         }
     }
 }
@@ -707,8 +866,13 @@ pub fn quantize_narrow(input: &[f32], scratch: &mut [i8], form: super::NarrowFor
 /// `128 high + low` gets the same exact sums. Returns the scale as [`quantize_bytes`] does.
 #[inline(always)]
 pub fn quantize_bytes_split(input: &[f32], high: &mut [i8], low: &mut [i8]) -> f32 {
-    let largest = largest_magnitude(input);
-    let inverse = match code_inverse(largest, BYTE_CODE_LIMIT) {
+    bytes_split(input, Largest::of(input), high, low)
+}
+
+/// [`quantize_bytes_split`] for `largest`.
+#[inline(always)]
+fn bytes_split(input: &[f32], largest: Largest, high: &mut [i8], low: &mut [i8]) -> f32 {
+    let inverse = match code_inverse(largest.value(), BYTE_CODE_LIMIT) {
         Ok(inverse) => inverse,
         Err(scale) => {
             high.fill(0);
@@ -717,12 +881,12 @@ pub fn quantize_bytes_split(input: &[f32], high: &mut [i8], low: &mut [i8]) -> f
         }
     };
     for ((h, l), &x) in high.iter_mut().zip(low.iter_mut()).zip(input) {
-        // SAFETY: as in `quantize_bytes`.
-        let code = unsafe { byte_code(x, inverse) };
+        // SAFETY: as in `bytes_of`.
+        let code = unsafe { byte_code(largest.hold(x), inverse) };
         *h = (code >> 7) as i8;
         *l = (code & 127) as i8;
     }
-    largest / BYTE_CODE_LIMIT
+    largest.value() / BYTE_CODE_LIMIT
 }
 
 #[cfg(test)]

@@ -19,12 +19,12 @@
 //! evaluated a few cells at a time) runs whole on the caller.
 
 use core::ops::Range;
-use core::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use core::sync::atomic::{AtomicBool, AtomicU32, AtomicUsize, Ordering};
 
 use super::workers::Workers;
 use super::{
     Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Epilogue, INT8_CHANNEL_BLOCK, Kernels,
-    NarrowForm, SignedByteRows, ops::Activation,
+    NarrowForm, SignedByteRows, ops, ops::Activation,
 };
 
 /// One band of a convolution: its shape, the input range it reads, its output.
@@ -41,6 +41,10 @@ type Int8Run<'r> =
 /// Multiply-adds below which a call runs whole: handing pieces to the other cores costs a
 /// microsecond or so.
 const MIN_SPLIT_PRODUCTS: usize = 1 << 16;
+
+/// What an element-wise pass over a value counts as, in multiply-adds, against
+/// [`MIN_SPLIT_PRODUCTS`]: maps of 32,768 values or more are cut.
+const ELEMENT_WORK: usize = 2;
 
 /// [`Kernels`] that cut each heavy call over `workers` and run `kernels` on the pieces.
 pub struct Split<'s> {
@@ -91,6 +95,97 @@ impl<'s> Split<'s> {
             applied: AtomicBool::new(false),
             _scratch: core::marker::PhantomData,
         }
+    }
+
+    /// GroupNorm of a large map ([`Kernels::group_norm`]) over the workers, each taking runs
+    /// of whole [`ops::MOMENT_BLOCK`] blocks of pixels, the runs each core's convolution
+    /// pieces mostly wrote: first each block's moments, into the scratch apart; the calling
+    /// thread adds them up in block order (the sums `group_norm` makes) and derives each
+    /// channel's scale and shift, which the workers then apply to their runs. `false`,
+    /// having run nothing, where the call is small or the scratch cannot hold the blocks'
+    /// moments.
+    fn group_norm_by_blocks(
+        &self,
+        data: &mut [f32],
+        channels: usize,
+        groups: usize,
+        affine: (&[f32], &[f32]),
+        activation: Activation,
+    ) -> bool {
+        let positions = data.len().checked_div(channels).unwrap_or(0);
+        let blocks = positions.div_ceil(ops::MOMENT_BLOCK);
+        let pieces = self.pieces(blocks, ELEMENT_WORK * data.len());
+        // Each block's sums and squares (f64), then the channels' scales and shifts.
+        let moments_len = 4 * channels * blocks;
+        // The scratch holds f64 moments: a caller's scratch on 4-byte boundaries runs whole.
+        let aligned = (self.scratch.start as usize).is_multiple_of(align_of::<f64>());
+        let shaped = aligned
+            && channels > 0
+            && groups > 0
+            && channels.is_multiple_of(groups)
+            && channels / groups <= ops::GROUP_NORM_CHUNK
+            && data.len() == positions * channels
+            && affine.0.len() == channels
+            && affine.1.len() == channels;
+        if pieces < 2 || !shaped || self.scratch.len < moments_len + 2 * channels {
+            return false;
+        }
+        if self.busy.swap(true, Ordering::Acquire) {
+            return false;
+        }
+        let (scratch, block_len) = (self.scratch, ops::MOMENT_BLOCK * channels);
+        let (kernels, values) = (self.kernels, &*data);
+        self.workers.run(pieces, &|piece| {
+            for block in share(blocks, pieces, piece) {
+                // SAFETY: each block has its own part of the scratch, which `busy` keeps
+                // for this call alone.
+                let slot =
+                    unsafe { scratch.slice(4 * channels * block..4 * channels * (block + 1)) };
+                let slot: &mut [f64] = bytemuck::cast_slice_mut(slot);
+                slot.fill(0.0);
+                let (sums, squares) = slot.split_at_mut(channels);
+                let pixels = block * block_len..((block + 1) * block_len).min(values.len());
+                kernels.add_channel_moments(&values[pixels], channels, (sums, squares));
+            }
+        });
+        // SAFETY: the pieces are done; `busy` keeps the scratch for this call.
+        let (moments, affine_out) =
+            unsafe { scratch.slice(0..moments_len + 2 * channels) }.split_at_mut(moments_len);
+        let moments: &mut [f64] = bytemuck::cast_slice_mut(moments);
+        let (total, rest) = moments.split_at_mut(2 * channels);
+        for block in rest.chunks_exact(2 * channels) {
+            for (sum, &value) in total.iter_mut().zip(block) {
+                *sum += value;
+            }
+        }
+        let (sums, squares) = total.split_at(channels);
+        let (scale, shift) = affine_out.split_at_mut(channels);
+        ops::group_scale_shift((sums, squares), positions, groups, affine, (scale, shift));
+        let (scale, shift) = (&*scale, &*shift);
+        let out = Shared::new(data);
+        self.workers.run(pieces, &|piece| {
+            let run = share(blocks, pieces, piece);
+            let pixels = run.start * block_len..(run.end * block_len).min(out.len);
+            // SAFETY: the pieces' runs are disjoint parts of `data`, which the caller does
+            // not touch until `run` has returned.
+            let part = unsafe { out.slice(pixels) };
+            kernels.affine_activate(part, channels, (scale, shift), activation);
+        });
+        self.busy.store(false, Ordering::Release);
+        true
+    }
+
+    /// The largest magnitude of `input` ([`Kernels::largest_magnitude`]), each of `pieces`
+    /// workers measuring a run of it.
+    fn largest_by_runs(&self, input: &[f32], pieces: usize) -> f32 {
+        let (kernels, len) = (self.kernels, input.len());
+        // `largest_magnitude`'s results as bits: their integer order is its order.
+        let largest = AtomicU32::new(0);
+        self.workers.run(pieces, &|piece| {
+            let part = kernels.largest_magnitude(&input[share(len, pieces, piece)]);
+            largest.fetch_max(part.to_bits(), Ordering::Relaxed);
+        });
+        f32::from_bits(largest.load(Ordering::Relaxed))
     }
 
     /// Cuts every call it can, however small (the tests' small shapes; the same bits).
@@ -481,20 +576,28 @@ fn distinct(pixels: &[(usize, usize)]) -> bool {
 }
 
 /// A mutable slice handed to several pieces, each taking its own disjoint part.
-#[derive(Clone, Copy, Debug)]
-struct Shared {
-    start: *mut f32,
+#[derive(Debug)]
+struct Shared<T = f32> {
+    start: *mut T,
     len: usize,
 }
 
+impl<T> Clone for Shared<T> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+
+impl<T> Copy for Shared<T> {}
+
 // SAFETY: a `Shared` only hands out parts through `slice`, whose callers promise the parts
 // they take at the same time are disjoint.
-unsafe impl Send for Shared {}
+unsafe impl<T: Send> Send for Shared<T> {}
 // SAFETY: as above.
-unsafe impl Sync for Shared {}
+unsafe impl<T: Send> Sync for Shared<T> {}
 
-impl Shared {
-    fn new(values: &mut [f32]) -> Self {
+impl<T> Shared<T> {
+    fn new(values: &mut [T]) -> Self {
         Shared {
             start: values.as_mut_ptr(),
             len: values.len(),
@@ -506,7 +609,7 @@ impl Shared {
     /// # Safety
     /// The slice this was made from outlives the result, nothing else reads or writes
     /// those values meanwhile, and no other part taken meanwhile overlaps `range`.
-    unsafe fn slice<'a>(self, range: Range<usize>) -> &'a mut [f32] {
+    unsafe fn slice<'a>(self, range: Range<usize>) -> &'a mut [T] {
         assert!(range.start <= range.end && range.end <= self.len);
         // SAFETY: in bounds (asserted); exclusive by the caller's promise.
         unsafe { core::slice::from_raw_parts_mut(self.start.add(range.start), range.len()) }
@@ -835,7 +938,51 @@ impl Kernels for Split<'_> {
     }
 
     fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {
-        self.kernels.quantize_digits(input, digits)
+        let (kernels, len) = (self.kernels, input.len());
+        let pieces = self.pieces(len, ELEMENT_WORK * len);
+        if pieces < 2 || digits.0.len() < len || digits.1.len() < len {
+            return kernels.quantize_digits(input, digits);
+        }
+        let largest = self.largest_by_runs(input, pieces);
+        let (high, low) = (Shared::new(digits.0), Shared::new(digits.1));
+        let nonnegative = AtomicBool::new(true);
+        self.workers.run(pieces, &|piece| {
+            let run = share(len, pieces, piece);
+            // SAFETY: the pieces' runs are disjoint parts of both planes, which the caller
+            // does not touch until `run` has returned.
+            let digits = unsafe { (high.slice(run.clone()), low.slice(run.clone())) };
+            let (_, part) = kernels.quantize_digits_within(&input[run], largest, digits);
+            if !part {
+                nonnegative.store(false, Ordering::Relaxed);
+            }
+        });
+        // The scale comes from `largest` alone.
+        let (scale, _) = kernels.quantize_digits_within(&[], largest, (&mut [], &mut []));
+        (scale, nonnegative.load(Ordering::Relaxed))
+    }
+
+    fn largest_magnitude(&self, input: &[f32]) -> f32 {
+        self.kernels.largest_magnitude(input)
+    }
+
+    fn quantize_digits_within(
+        &self,
+        input: &[f32],
+        largest: f32,
+        digits: (&mut [i8], &mut [i8]),
+    ) -> (f32, bool) {
+        self.kernels.quantize_digits_within(input, largest, digits)
+    }
+
+    fn quantize_narrow_within(
+        &self,
+        input: &[f32],
+        largest: f32,
+        codes: (&mut [i8], &mut [i8]),
+        form: NarrowForm,
+    ) -> f32 {
+        self.kernels
+            .quantize_narrow_within(input, largest, codes, form)
     }
 
     fn narrow_form(&self) -> NarrowForm {
@@ -843,7 +990,31 @@ impl Kernels for Split<'_> {
     }
 
     fn quantize_narrow(&self, input: &[f32], scratch: &mut [i8], form: NarrowForm) -> f32 {
-        self.kernels.quantize_narrow(input, scratch, form)
+        let (kernels, len) = (self.kernels, input.len());
+        let pieces = self.pieces(len, ELEMENT_WORK * len);
+        let planes = match form {
+            NarrowForm::Bytes => 1,
+            NarrowForm::Digits => 2,
+        };
+        if pieces < 2 || scratch.len() < planes * len {
+            return kernels.quantize_narrow(input, scratch, form);
+        }
+        let largest = self.largest_by_runs(input, pieces);
+        let (first, second) = match form {
+            NarrowForm::Bytes => (&mut scratch[..len], &mut [][..]),
+            NarrowForm::Digits => scratch[..2 * len].split_at_mut(len),
+        };
+        let (first, second) = (Shared::new(first), Shared::new(second));
+        self.workers.run(pieces, &|piece| {
+            let run = share(len, pieces, piece);
+            let second_run = if planes == 2 { run.clone() } else { 0..0 };
+            // SAFETY: the pieces' runs are disjoint parts of the codes, which the caller
+            // does not touch until `run` has returned.
+            let codes = unsafe { (first.slice(run.clone()), second.slice(second_run)) };
+            kernels.quantize_narrow_within(&input[run], largest, codes, form);
+        });
+        // The scale comes from `largest` alone.
+        kernels.quantize_narrow_within(&[], largest, (&mut [], &mut []), form)
     }
 
     fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
@@ -877,12 +1048,38 @@ impl Kernels for Split<'_> {
         affine: (&[f32], &[f32]),
         activation: Activation,
     ) {
+        if !self.group_norm_by_blocks(data, channels, groups, affine, activation) {
+            self.kernels
+                .group_norm(data, channels, groups, affine, activation)
+        }
+    }
+
+    fn affine_activate(
+        &self,
+        data: &mut [f32],
+        channels: usize,
+        affine: (&[f32], &[f32]),
+        activation: Activation,
+    ) {
         self.kernels
-            .group_norm(data, channels, groups, affine, activation)
+            .affine_activate(data, channels, affine, activation)
     }
 
     fn add_activate(&self, target: &mut [f32], source: &[f32], activation: Activation) {
-        self.kernels.add_activate(target, source, activation)
+        let (kernels, len) = (self.kernels, target.len());
+        // Element-wise: runs of values give the whole call's bits.
+        let pieces = self.pieces(len, ELEMENT_WORK * len);
+        if pieces < 2 || source.len() < len {
+            return kernels.add_activate(target, source, activation);
+        }
+        let out = Shared::new(target);
+        self.workers.run(pieces, &|piece| {
+            let run = share(len, pieces, piece);
+            // SAFETY: the pieces' runs are disjoint parts of `target`, which the caller
+            // does not touch until `run` has returned.
+            let part = unsafe { out.slice(run.clone()) };
+            kernels.add_activate(part, &source[run], activation);
+        });
     }
 
     fn conv_then(

@@ -468,10 +468,6 @@ impl Kernels for Amx {
             .matvec_int8_codes(weight, row_scales, input, base, output)
     }
 
-    fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {
-        self.avx512.quantize_digits(input, digits)
-    }
-
     fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
         self.avx512.quantize_codes(input, row_len, codes)
     }
@@ -497,8 +493,36 @@ impl Kernels for Amx {
         NarrowForm::Bytes
     }
 
+    fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {
+        self.avx512.quantize_digits(input, digits)
+    }
+
     fn quantize_narrow(&self, input: &[f32], scratch: &mut [i8], form: NarrowForm) -> f32 {
         self.avx512.quantize_narrow(input, scratch, form)
+    }
+
+    fn largest_magnitude(&self, input: &[f32]) -> f32 {
+        self.avx512.largest_magnitude(input)
+    }
+
+    fn quantize_digits_within(
+        &self,
+        input: &[f32],
+        largest: f32,
+        digits: (&mut [i8], &mut [i8]),
+    ) -> (f32, bool) {
+        self.avx512.quantize_digits_within(input, largest, digits)
+    }
+
+    fn quantize_narrow_within(
+        &self,
+        input: &[f32],
+        largest: f32,
+        codes: (&mut [i8], &mut [i8]),
+        form: NarrowForm,
+    ) -> f32 {
+        self.avx512
+            .quantize_narrow_within(input, largest, codes, form)
     }
 
     fn group_norm(
@@ -511,6 +535,17 @@ impl Kernels for Amx {
     ) {
         self.avx512
             .group_norm(data, channels, groups, affine, activation)
+    }
+
+    fn affine_activate(
+        &self,
+        data: &mut [f32],
+        channels: usize,
+        affine: (&[f32], &[f32]),
+        activation: Activation,
+    ) {
+        self.avx512
+            .affine_activate(data, channels, affine, activation)
     }
 
     fn add_activate(&self, target: &mut [f32], source: &[f32], activation: Activation) {

@@ -29,6 +29,33 @@ macro_rules! backend {
                 ops::quantize_narrow(input, scratch, form)
             }
 
+            /// [`ops::largest_magnitude`] on this backend's vectors.
+            #[target_feature(enable = $features)]
+            pub(crate) fn largest_magnitude(input: &[f32]) -> f32 {
+                ops::largest_magnitude(input)
+            }
+
+            /// [`ops::quantize_split_signs_within`] on this backend's vectors.
+            #[target_feature(enable = $features)]
+            pub(crate) fn quantize_digits_within(
+                input: &[f32],
+                largest: f32,
+                (high, low): (&mut [i8], &mut [i8]),
+            ) -> (f32, bool) {
+                ops::quantize_split_signs_within(input, largest, high, low)
+            }
+
+            /// [`ops::quantize_narrow_within`] on this backend's vectors.
+            #[target_feature(enable = $features)]
+            pub(crate) fn quantize_narrow_within(
+                input: &[f32],
+                largest: f32,
+                codes: (&mut [i8], &mut [i8]),
+                form: crate::kernels::NarrowForm,
+            ) -> f32 {
+                ops::quantize_narrow_within(input, largest, codes, form)
+            }
+
             /// [`ops::quantize_rows_codes`] on this backend's vectors.
             #[target_feature(enable = $features)]
             pub(crate) fn quantize_codes(input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
@@ -69,6 +96,17 @@ macro_rules! backend {
                 activation: Activation,
             ) {
                 ops::group_norm(data, channels, groups, gamma, beta, activation)
+            }
+
+            /// [`ops::affine_activate`] on this backend's vectors.
+            #[target_feature(enable = $features)]
+            pub(crate) fn affine_activate(
+                data: &mut [f32],
+                channels: usize,
+                affine: (&[f32], &[f32]),
+                activation: Activation,
+            ) {
+                ops::affine_activate(data, channels, affine, activation)
             }
 
             /// [`ops::add_activate`] on this backend's vectors.

@@ -89,11 +89,6 @@ macro_rules! shared_kernels {
             }
         }
 
-        fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {
-            // SAFETY: `self` exists only on a CPU with the backend's features.
-            unsafe { crate::kernels::x86_64::elementwise::$backend::quantize_digits(input, digits) }
-        }
-
         fn quantize_codes(&self, input: &[f32], row_len: usize, codes: &mut [i16]) -> f32 {
             // SAFETY: `self` exists only on a CPU with the backend's features.
             unsafe {
@@ -125,6 +120,11 @@ macro_rules! shared_kernels {
             }
         }
 
+        fn quantize_digits(&self, input: &[f32], digits: (&mut [i8], &mut [i8])) -> (f32, bool) {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { crate::kernels::x86_64::elementwise::$backend::quantize_digits(input, digits) }
+        }
+
         fn quantize_narrow(
             &self,
             input: &[f32],
@@ -134,6 +134,40 @@ macro_rules! shared_kernels {
             // SAFETY: `self` exists only on a CPU with the backend's features.
             unsafe {
                 crate::kernels::x86_64::elementwise::$backend::quantize_narrow(input, scratch, form)
+            }
+        }
+
+        fn largest_magnitude(&self, input: &[f32]) -> f32 {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe { crate::kernels::x86_64::elementwise::$backend::largest_magnitude(input) }
+        }
+
+        fn quantize_digits_within(
+            &self,
+            input: &[f32],
+            largest: f32,
+            digits: (&mut [i8], &mut [i8]),
+        ) -> (f32, bool) {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe {
+                crate::kernels::x86_64::elementwise::$backend::quantize_digits_within(
+                    input, largest, digits,
+                )
+            }
+        }
+
+        fn quantize_narrow_within(
+            &self,
+            input: &[f32],
+            largest: f32,
+            codes: (&mut [i8], &mut [i8]),
+            form: crate::kernels::NarrowForm,
+        ) -> f32 {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe {
+                crate::kernels::x86_64::elementwise::$backend::quantize_narrow_within(
+                    input, largest, codes, form,
+                )
             }
         }
 
@@ -149,6 +183,21 @@ macro_rules! shared_kernels {
             unsafe {
                 crate::kernels::x86_64::elementwise::$backend::group_norm(
                     data, channels, groups, affine, activation,
+                )
+            }
+        }
+
+        fn affine_activate(
+            &self,
+            data: &mut [f32],
+            channels: usize,
+            affine: (&[f32], &[f32]),
+            activation: Activation,
+        ) {
+            // SAFETY: `self` exists only on a CPU with the backend's features.
+            unsafe {
+                crate::kernels::x86_64::elementwise::$backend::affine_activate(
+                    data, channels, affine, activation,
                 )
             }
         }
