@@ -546,8 +546,8 @@ pub trait Kernels: Sync {
         ops::quantize_split_signs(input, digits.0, digits.1)
     }
 
-    /// [`ops::largest_magnitude`], what a quantization's scale comes from: that of several
-    /// parts of an input, the larger of each two ([`ops::larger_magnitude`]), is the whole's.
+    /// [`ops::largest_magnitude`], what a quantization's scale comes from: the largest of
+    /// several parts' results, their bits compared as integers, is the whole input's.
     fn largest_magnitude(&self, input: &[f32]) -> f32 {
         ops::largest_magnitude(input)
     }

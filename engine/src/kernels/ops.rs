@@ -531,21 +531,14 @@ pub fn quantize_symmetric_signs(input: &[f32], output: &mut [i8]) -> (f32, bool)
 /// infinity. |x| as bits: for numbers the integer order is the float order, and NaN patterns
 /// sort above infinity, so one integer maximum finds max |x| or reports a non-finite input.
 /// It vectorizes; a float fold that must notice NaN does not (it was a fifth of the int8
-/// trunk's time). The same order makes the largest of several parts' results the whole
-/// input's ([`larger_magnitude`]).
+/// trunk's time). The same order makes the largest of several parts' results, their bits
+/// compared as integers, the whole input's.
 #[inline(always)]
 pub fn largest_magnitude(input: &[f32]) -> f32 {
     let bits = input
         .iter()
         .fold(0u32, |largest, &x| largest.max(x.to_bits() & 0x7fff_ffff));
     f32::from_bits(bits)
-}
-
-/// The larger of two [`largest_magnitude`] results, as [`largest_magnitude`] orders them
-/// (a non-finite one wins): the largest magnitude of two parts of an input is the whole's.
-#[inline(always)]
-pub fn larger_magnitude(a: f32, b: f32) -> f32 {
-    f32::from_bits(a.to_bits().max(b.to_bits()))
 }
 
 /// Where a quantizer's largest magnitude comes from.
