@@ -1,5 +1,8 @@
 //! The aarch64 features as the OS reports them: hosted builds' answer (the `std` feature).
 
+// Declared under the same gate in `mod.rs`; said here too, so the file stands on its own.
+#![cfg(feature = "std")]
+
 use std::arch::is_aarch64_feature_detected;
 
 /// The dot-product extension (`sdot`, FEAT_DotProd) is present, as the OS reports it.
