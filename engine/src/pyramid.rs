@@ -9,6 +9,7 @@ use crate::kernels::{
 };
 use crate::layer::{self, Activations};
 use crate::plan::FrameLayout;
+use crate::shape::gcd;
 use crate::weights::{ActivationCodes, Conv, ConvNorm, PyramidWeights, Weight};
 
 /// Four activation buffers the residual blocks rotate through; the first holds the image
@@ -367,19 +368,21 @@ pub fn stem(
     // whole blocks of pixels; where the buffer holds too few rows for that, the map is
     // normalized whole after the convolution.
     let block_rows = ops::MOMENT_BLOCK / gcd(out_width, ops::MOMENT_BLOCK);
-    let whole_blocks = match fitting < out_height {
-        true => fitting - fitting % block_rows,
-        false => fitting,
+    let whole_block_rows = if fitting < out_height {
+        fitting - fitting % block_rows
+    } else {
+        fitting
     };
-    let band_rows = if whole_blocks > 0 {
-        whole_blocks
+    let banded_moments = whole_block_rows > 0;
+    let band_rows = if banded_moments {
+        whole_block_rows
     } else {
         fitting
     };
     let norm = layer
         .norm
         .as_ref()
-        .filter(|_| channels <= MOMENT_CHANNELS && whole_blocks > 0);
+        .filter(|_| channels <= MOMENT_CHANNELS && banded_moments);
     let padded = frame::pad_image(config, image, bytemuck::cast_slice_mut(pooled));
     for first_row in (0..out_height).step_by(band_rows) {
         let rows = band_rows.min(out_height - first_row);
@@ -427,14 +430,6 @@ pub fn stem(
             kernels.max_pool_3x3_stride_2(map, map_shape, pooled);
         }
     }
-}
-
-/// Greatest common divisor.
-const fn gcd(mut a: usize, mut b: usize) -> usize {
-    while b != 0 {
-        (a, b) = (b, a % b);
-    }
-    a
 }
 
 /// Encodes `image` (RGB bytes of the config's size) into `frame`: the five projected maps,

@@ -4,6 +4,14 @@
 //! lengths with them, and the kernels read their weights by them; none of those needs the
 //! others to do it.
 
+/// The greatest common divisor of `a` and `b` (`a` when `b` is 0).
+pub const fn gcd(mut a: usize, mut b: usize) -> usize {
+    while b != 0 {
+        (a, b) = (b, a % b);
+    }
+    a
+}
+
 /// Output length of a convolution or pooling window (PyTorch's floor rule).
 pub const fn conv_output(input: usize, kernel: usize, stride: usize, padding: usize) -> usize {
     (input + 2 * padding - kernel) / stride + 1

@@ -555,11 +555,7 @@ enum Store {
 
 /// The least common multiple of `a` and `b` (both nonzero).
 fn lcm(a: usize, b: usize) -> usize {
-    let (mut x, mut y) = (a, b);
-    while y != 0 {
-        (x, y) = (y, x % y);
-    }
-    a / x * b
+    a / crate::shape::gcd(a, b) * b
 }
 
 /// Piece `piece`'s share of `units` cut into `pieces`: sizes differ by at most one.
