@@ -180,9 +180,17 @@ impl<'s> Split<'s> {
         true
     }
 
-    /// The largest magnitude of `input` ([`Kernels::largest_magnitude`]), each of `pieces`
-    /// workers measuring a run of it.
-    fn largest_by_runs(&self, input: &[f32], pieces: usize) -> f32 {
+    /// A quantization of `input` cut into runs of values over `pieces` workers: each run's
+    /// largest magnitude ([`Kernels::largest_magnitude`]), then `codes(run, largest)` for
+    /// each run with the whole input's, which says whether the run's codes are
+    /// nonnegative. Returns the whole input's largest magnitude, which alone gives the
+    /// scale, and whether every code is nonnegative.
+    fn quantize_by_runs(
+        &self,
+        input: &[f32],
+        pieces: usize,
+        codes: &(dyn Fn(Range<usize>, f32) -> bool + Sync),
+    ) -> (f32, bool) {
         let (kernels, len) = (self.kernels, input.len());
         // `largest_magnitude`'s results as bits: their integer order is its order.
         let largest = AtomicU32::new(0);
@@ -190,7 +198,14 @@ impl<'s> Split<'s> {
             let part = kernels.largest_magnitude(&input[share(len, pieces, piece)]);
             largest.fetch_max(part.to_bits(), Ordering::Relaxed);
         });
-        f32::from_bits(largest.load(Ordering::Relaxed))
+        let largest = f32::from_bits(largest.load(Ordering::Relaxed));
+        let nonnegative = AtomicBool::new(true);
+        self.workers.run(pieces, &|piece| {
+            if !codes(share(len, pieces, piece), largest) {
+                nonnegative.store(false, Ordering::Relaxed);
+            }
+        });
+        (largest, nonnegative.load(Ordering::Relaxed))
     }
 
     /// Cuts every call it can, however small (the tests' small shapes; the same bits).
@@ -944,22 +959,17 @@ impl Kernels for Split<'_> {
         if pieces < 2 || digits.0.len() < len || digits.1.len() < len {
             return kernels.quantize_digits(input, digits);
         }
-        let largest = self.largest_by_runs(input, pieces);
         let (high, low) = (Shared::new(digits.0), Shared::new(digits.1));
-        let nonnegative = AtomicBool::new(true);
-        self.workers.run(pieces, &|piece| {
-            let run = share(len, pieces, piece);
+        let (largest, nonnegative) = self.quantize_by_runs(input, pieces, &|run, largest| {
             // SAFETY: the pieces' runs are disjoint parts of both planes, which the caller
             // does not touch until `run` has returned.
             let digits = unsafe { (high.slice(run.clone()), low.slice(run.clone())) };
-            let (_, part) = kernels.quantize_digits_within(&input[run], largest, digits);
-            if !part {
-                nonnegative.store(false, Ordering::Relaxed);
-            }
+            kernels
+                .quantize_digits_within(&input[run], largest, digits)
+                .1
         });
-        // The scale comes from `largest` alone.
         let (scale, _) = kernels.quantize_digits_within(&[], largest, (&mut [], &mut []));
-        (scale, nonnegative.load(Ordering::Relaxed))
+        (scale, nonnegative)
     }
 
     fn largest_magnitude(&self, input: &[f32]) -> f32 {
@@ -1000,21 +1010,19 @@ impl Kernels for Split<'_> {
         if pieces < 2 || scratch.len() < planes * len {
             return kernels.quantize_narrow(input, scratch, form);
         }
-        let largest = self.largest_by_runs(input, pieces);
         let (first, second) = match form {
             NarrowForm::Bytes => (&mut scratch[..len], &mut [][..]),
             NarrowForm::Digits => scratch[..2 * len].split_at_mut(len),
         };
         let (first, second) = (Shared::new(first), Shared::new(second));
-        self.workers.run(pieces, &|piece| {
-            let run = share(len, pieces, piece);
+        let (largest, _) = self.quantize_by_runs(input, pieces, &|run, largest| {
             let second_run = if planes == 2 { run.clone() } else { 0..0 };
             // SAFETY: the pieces' runs are disjoint parts of the codes, which the caller
             // does not touch until `run` has returned.
             let codes = unsafe { (first.slice(run.clone()), second.slice(second_run)) };
             kernels.quantize_narrow_within(&input[run], largest, codes, form);
+            true
         });
-        // The scale comes from `largest` alone.
         kernels.quantize_narrow_within(&[], largest, (&mut [], &mut []), form)
     }
 
