@@ -431,33 +431,32 @@ impl StageSamples {
     /// end to end, then for the newest frame and the loop. `None` on one thread.
     #[cfg(feature = "pool-timing")]
     pub fn call_table(sets: &[StageSamples]) -> Option<[[f64; 5]; 2]> {
+        use scdp_threads::Timing;
         let runs: Vec<_> = sets.iter().flat_map(|set| &set.calls).collect();
         if runs.iter().all(|(_, newest)| newest.calls == 0) {
             return None;
         }
-        let median = |part: &dyn Fn(&(scdp_threads::Timing, scdp_threads::Timing)) -> f64| {
-            let mut values: Vec<f64> = runs.iter().map(|run| part(run)).collect();
-            values.sort_by(f64::total_cmp);
-            values[values.len() / 2]
-        };
-        let ms = |duration: Duration| duration.as_secs_f64() * 1e3;
-        let row = |with_older: bool| {
-            let older = move |run: &(scdp_threads::Timing, scdp_threads::Timing)| {
-                if with_older {
-                    run.0
-                } else {
-                    Default::default()
-                }
+        let row = |timings: Vec<Timing>| {
+            let median = |part: fn(&Timing) -> Duration| {
+                let mut values: Vec<Duration> = timings.iter().map(part).collect();
+                percentiles(&mut values).0.as_secs_f64() * 1e3
             };
+            let mut calls: Vec<usize> = timings.iter().map(|timing| timing.calls).collect();
+            calls.sort_unstable();
             [
-                median(&|run| ms(older(run).between + run.1.between)),
-                median(&|run| ms(older(run).publishing + run.1.publishing)),
-                median(&|run| ms(older(run).pieces + run.1.pieces)),
-                median(&|run| ms(older(run).waiting + run.1.waiting)),
-                median(&|run| (older(run).calls + run.1.calls) as f64),
+                median(|timing| timing.between),
+                median(|timing| timing.publishing),
+                median(|timing| timing.pieces),
+                median(|timing| timing.waiting),
+                calls[calls.len() / 2] as f64,
             ]
         };
-        Some([row(true), row(false)])
+        let whole = runs
+            .iter()
+            .map(|&&(older, newest)| older + newest)
+            .collect();
+        let newest = runs.iter().map(|&&(_, newest)| newest).collect();
+        Some([row(whole), row(newest)])
     }
 }
 

@@ -101,6 +101,22 @@ pub struct Timing {
     pub waiting: Duration,
 }
 
+/// Two spans' timings as one: each part, and the calls, added.
+#[cfg(feature = "timing")]
+impl core::ops::Add for Timing {
+    type Output = Timing;
+
+    fn add(self, other: Timing) -> Timing {
+        Timing {
+            calls: self.calls + other.calls,
+            between: self.between + other.between,
+            publishing: self.publishing + other.publishing,
+            pieces: self.pieces + other.pieces,
+            waiting: self.waiting + other.waiting,
+        }
+    }
+}
+
 #[cfg(feature = "timing")]
 #[derive(Debug, Default)]
 struct Tally {
