@@ -1,7 +1,10 @@
 //! Sample + condition -> predicted noise: Diffusion Policy's ConditionalUnet1D with FiLM
 //! (docs/SPEC.md section 4), over `[T, C]` sequences.
 
+use core::ops::Range;
+
 use crate::config::{FINAL_BLOCK_GROUPS, ModelConfig, UNET_LEVELS};
+use crate::kernels::board::{self, Board, Collected};
 use crate::kernels::ops::{self, Activation};
 use crate::kernels::{
     Accumulate, CodeRows, ConvShape, Epilogue, Film, FilmWeights, Kernels, QuantizeScratch,
@@ -22,10 +25,36 @@ pub struct DenoiserScratch<'a> {
     pub cond_codes: QuantizeScratch<'a>,
 }
 
+/// Residual blocks of the U-Net: two a level down and up, two in the middle.
+const BLOCKS: usize = 2 * (2 * UNET_LEVELS - 1) + 2;
+
+/// FiLM rows a background chunk computes at least.
+const CHUNK_ROWS: usize = 64;
+
+/// Where a denoising step cut over several workers ([`Board`]) runs: the board, the
+/// kernels its helpers run the FiLM products with, and where those go (every block's `2
+/// out` values, in block order).
+pub struct Helpers<'h> {
+    pub board: &'h Board,
+    pub kernels: &'h dyn Kernels,
+    pub films: &'h mut [f32],
+}
+
+/// Every block's FiLM values, computed in the background: block `b`'s are `ranges[b]` of
+/// what `collected` holds once chunk `last[b]` is complete.
+struct Films<'f> {
+    collected: &'f Collected<'f>,
+    ranges: &'f [Range<usize>; BLOCKS],
+    last: &'f [usize; BLOCKS],
+}
+
 struct Context<'a> {
     kernels: &'a dyn Kernels,
     config: &'a ModelConfig,
     step: usize,
+    /// The FiLM values computed in the background, and the residual blocks run so far.
+    films: Option<&'a Films<'a>>,
+    block: usize,
     /// `Mish(g)`: the FiLM layers' input (the time-embedding part is precomputed).
     activated_cond: &'a [f32],
     /// Its codes, for int8 FiLM weights.
@@ -127,24 +156,15 @@ impl Context<'_> {
     ) {
         let out_channels = block.out_channels;
         let groups = self.config.n_groups as usize;
-        let base = &block.film_table[self.step * 2 * out_channels..][..2 * out_channels];
-        // No condition, no codes: FiLM is then its base.
-        let no_codes = CodeRows {
-            codes: &[],
-            scale: 0.0,
-        };
-        let weights = match &block.film_weight {
-            Weight::F32(weight) => FilmWeights::F32 {
-                weight,
-                input: self.activated_cond,
+        let index = self.block;
+        self.block += 1;
+        let film = match self.films {
+            Some(films) if index < BLOCKS => Film {
+                weights: FilmWeights::Computed,
+                base: &films.collected.complete(films.last[index])[films.ranges[index].clone()],
             },
-            Weight::Int8 { values, scales, .. } => FilmWeights::Int8 {
-                weight: values,
-                row_scales: scales,
-                input: self.cond_codes.unwrap_or(no_codes),
-            },
+            _ => block_film(block, self.step, self.activated_cond, self.cond_codes),
         };
-        let film = Film { weights, base };
         self.conv_block(
             &block.conv0,
             &block.norm0,
@@ -213,6 +233,34 @@ impl Context<'_> {
     }
 }
 
+/// The FiLM product of `block` at inference step `step`.
+fn block_film<'b>(
+    block: &ResidualBlock<'b>,
+    step: usize,
+    activated_cond: &'b [f32],
+    cond_codes: Option<CodeRows<'b>>,
+) -> Film<'b> {
+    let rows = 2 * block.out_channels;
+    let base = &block.film_table[step * rows..][..rows];
+    // No condition, no codes: FiLM is then its base.
+    let no_codes = CodeRows {
+        codes: &[],
+        scale: 0.0,
+    };
+    let weights = match &block.film_weight {
+        Weight::F32(weight) => FilmWeights::F32 {
+            weight,
+            input: activated_cond,
+        },
+        Weight::Int8 { values, scales, .. } => FilmWeights::Int8 {
+            weight: values,
+            row_scales: scales,
+            input: cond_codes.unwrap_or(no_codes),
+        },
+    };
+    Film { weights, base }
+}
+
 /// Interleaves `[length, a]` and `[length, b]` into `[length, a + b]` (torch.cat on channels).
 fn concat_channels(
     first: &[f32],
@@ -230,7 +278,8 @@ fn concat_channels(
 }
 
 /// One U-Net evaluation at inference step `step`: `sample` `[horizon, action_dim]` ->
-/// `eps` `[horizon, action_dim]`.
+/// `eps` `[horizon, action_dim]`. With `helpers`, every block's FiLM product runs in the
+/// background on the board's other workers while the blocks before it run.
 #[allow(clippy::too_many_arguments)]
 pub fn predict_noise(
     kernels: &dyn Kernels,
@@ -240,32 +289,115 @@ pub fn predict_noise(
     sample: &[f32],
     activated_cond: &[f32],
     scratch: DenoiserScratch<'_>,
+    helpers: Option<Helpers<'_>>,
     eps: &mut [f32],
 ) {
     let DenoiserScratch {
-        work: [w0, w1, w2, w3],
-        skips: [skip1, skip2],
+        work,
+        skips,
         film,
         quantized,
         mut cond_codes,
     } = scratch;
+    let blocks = || {
+        let down = weights.down.iter().flatten();
+        down.chain(&weights.mid).chain(weights.up.iter().flatten())
+    };
     // Every block's FiLM reads the same condition: quantized once.
-    let blocks = weights.down.iter().flatten();
-    let mut blocks = blocks
-        .chain(&weights.mid)
-        .chain(weights.up.iter().flatten());
-    let int8_film = blocks.any(|block| matches!(block.film_weight, Weight::Int8 { .. }));
+    let int8_film = blocks().any(|block| matches!(block.film_weight, Weight::Int8 { .. }));
     let cond_codes = (int8_film && !activated_cond.is_empty())
         .then(|| cond_codes.quantize_codes(kernels, activated_cond, activated_cond.len()));
-    let mut context = Context {
-        kernels,
-        config,
-        step,
-        activated_cond,
-        cond_codes,
-        film,
-        quantized,
+    // Each block's `2 out` FiLM rows cut into chunks of at least CHUNK_ROWS, few enough
+    // for the board (each block's last chunk may be short); where they do not fit, the
+    // epilogues compute them.
+    let total: usize = blocks().map(|block| 2 * block.out_channels).sum();
+    let chunk_rows = CHUNK_ROWS.max(total.div_ceil(board::MAX_CHUNKS - BLOCKS));
+    let mut chunks = heapless::Vec::<Range<usize>, { board::MAX_CHUNKS }>::new();
+    let mut owners = [0usize; board::MAX_CHUNKS];
+    let mut ranges: [Range<usize>; BLOCKS] = core::array::from_fn(|_| 0..0);
+    let mut last = [0usize; BLOCKS];
+    let mut start = 0;
+    for (index, block) in blocks().enumerate().take(BLOCKS) {
+        let rows = 2 * block.out_channels;
+        ranges[index] = start..start + rows;
+        for row in (0..rows).step_by(chunk_rows.max(1)) {
+            owners[chunks.len().min(board::MAX_CHUNKS - 1)] = index;
+            let end = (row + chunk_rows).min(rows);
+            if chunks.push(start + row..start + end).is_err() {
+                break;
+            }
+        }
+        last[index] = chunks.len().saturating_sub(1);
+        start += rows;
+    }
+    let planned = chunks.last().is_some_and(|chunk| chunk.end == start);
+    // The arena plan holds every block's FiLM values (`ArenaPlan::unet_films`).
+    debug_assert!(
+        helpers
+            .as_ref()
+            .is_none_or(|helpers| helpers.films.len() >= start)
+    );
+    let helpers = helpers.filter(|helpers| planned && helpers.films.len() >= start);
+    let Some(Helpers {
+        board,
+        kernels: helper_kernels,
+        films,
+    }) = helpers
+    else {
+        let mut context = Context {
+            kernels,
+            config,
+            step,
+            films: None,
+            block: 0,
+            activated_cond,
+            cond_codes,
+            film,
+            quantized,
+        };
+        return run_unet(&mut context, weights, sample, work, skips, eps);
     };
+    let all: heapless::Vec<&ResidualBlock<'_>, BLOCKS> = blocks().take(BLOCKS).collect();
+    let film_rows = |chunk: usize, values: &mut [f32]| {
+        let index = owners[chunk];
+        let Some(block) = all.get(index) else {
+            return;
+        };
+        let range = &chunks[chunk];
+        let rows = range.start - ranges[index].start..range.end - ranges[index].start;
+        block_film(block, step, activated_cond, cond_codes).rows(helper_kernels, rows, values);
+    };
+    board.with_background(&mut films[..start], &chunks, &film_rows, |_, collected| {
+        let films = Films {
+            collected,
+            ranges: &ranges,
+            last: &last,
+        };
+        let mut context = Context {
+            kernels,
+            config,
+            step,
+            films: Some(&films),
+            block: 0,
+            activated_cond,
+            cond_codes,
+            film,
+            quantized,
+        };
+        run_unet(&mut context, weights, sample, work, skips, eps)
+    });
+}
+
+/// The U-Net's layers, `sample` -> `eps`.
+fn run_unet(
+    context: &mut Context<'_>,
+    weights: &DenoiserWeights<'_>,
+    sample: &[f32],
+    [w0, w1, w2, w3]: [&mut [f32]; 4],
+    [skip1, skip2]: [&mut [f32]; UNET_LEVELS - 1],
+    eps: &mut [f32],
+) {
+    let config = context.config;
     let horizon = config.horizon as usize;
     let dims = config.down_dims.map(|d| d as usize);
     let [level0, level1, level2] = &weights.down;

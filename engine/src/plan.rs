@@ -85,6 +85,10 @@ pub struct ArenaPlan {
     /// Denoising phase too: the outputs of a U-Net convolution cut by output channels over
     /// several workers ([`crate::kernels::Split`]), one work buffer's length.
     pub unet_split: usize,
+    /// Denoising phase too, with several workers: every residual block's FiLM values of a
+    /// step (`2 out` each), which the workers compute in the background
+    /// ([`crate::kernels::Board`]).
+    pub unet_films: usize,
 }
 
 impl ArenaPlan {
@@ -122,6 +126,7 @@ impl ArenaPlan {
             unet_work: saturate(plan.unet_work),
             unet_skips: [saturate(plan.unet_skips[0]), saturate(plan.unet_skips[1])],
             unet_split: saturate(plan.unet_split),
+            unet_films: saturate(plan.unet_films),
         }
     }
 
@@ -246,6 +251,7 @@ struct Lengths {
     unet_work: u64,
     unet_skips: [u64; UNET_LEVELS - 1],
     unet_split: u64,
+    unet_films: u64,
 }
 
 impl Lengths {
@@ -318,7 +324,19 @@ impl Lengths {
             aligned((horizon / 4) * config.down_dims[2] as u64),
         ];
         let unet_split = unet_work;
-        let unet = unet_split + 4 * unet_work + unet_skips[0] + unet_skips[1];
+        // Two residual blocks a level down, two in the middle (the deepest width), two a
+        // level up (the width of the level below), each `2 out` FiLM values.
+        let mut block_channels = 2 * config.down_dims[UNET_LEVELS - 1] as u64;
+        let mut level = 0;
+        while level < UNET_LEVELS {
+            block_channels += 2 * config.down_dims[level] as u64;
+            if level + 1 < UNET_LEVELS {
+                block_channels += 2 * config.down_dims[level] as u64;
+            }
+            level += 1;
+        }
+        let unet_films = aligned(2 * block_channels);
+        let unet = unet_split + unet_films + 4 * unet_work + unet_skips[0] + unet_skips[1];
         // Without reuse: every block output and intermediate of one U-Net pass (two
         // convolutions per block, 12 blocks, plus the resampling layers and the head).
         let unet_naive = 3 * 12 * horizon * 2 * widest + 6 * horizon * widest + unet_split;
@@ -369,6 +387,7 @@ impl Lengths {
             unet_work,
             unet_skips,
             unet_split,
+            unet_films,
         }
     }
 }

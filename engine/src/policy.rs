@@ -3,12 +3,12 @@
 use crate::anchors::{self, Camera};
 use crate::config::{MAX_OBS_STEPS, ModelConfig, PYRAMID_LEVELS};
 use crate::context;
-use crate::denoiser::{self, DenoiserScratch};
+use crate::denoiser::{self, DenoiserScratch, Helpers};
 use crate::error::Error;
 use crate::format::WeightsFile;
 use crate::frame;
 use crate::kernels::ops::mish;
-use crate::kernels::{self, Backend, Kernels, QuantizeScratch, Sequential, Split, Workers};
+use crate::kernels::{self, Backend, Board, Kernels, QuantizeScratch, Sequential, Split, Workers};
 use crate::plan::{ArenaPlan, Carver};
 use crate::pyramid::{self, FrameStore, TrunkScratch};
 use crate::rng::NoiseRng;
@@ -423,7 +423,12 @@ impl<'w, 'a> Policy<'w, 'a> {
         let normalizer = weights.normalizer;
         let buffers = self.buffers();
         let (split_scratch, unet_scratch) = buffers.scratch.split_at_mut(plan.unet_split);
-        let split = Split::new(kernels, workers, split_scratch);
+        let (films, unet_scratch) = unet_scratch.split_at_mut(plan.unet_films);
+        let backend = kernels;
+        // The anchors' projection cells cut over the workers; each denoising step runs on a
+        // board of its own (below), which cuts the U-Net's calls and computes its FiLM
+        // products in the background.
+        let split = Split::new(kernels, workers, &mut []);
         let kernels: &dyn Kernels = if workers.count() > 1 { &split } else { kernels };
 
         let sample = &mut buffers.sample[..sequence];
@@ -523,16 +528,30 @@ impl<'w, 'a> Policy<'w, 'a> {
                     values: &mut *buffers.cond_codes.values,
                 },
             };
-            denoiser::predict_noise(
-                kernels,
-                &config,
-                &weights.denoiser,
-                step,
-                sample,
-                activated,
-                scratch,
-                eps,
-            );
+            let denoiser = &weights.denoiser;
+            if workers.count() > 1 {
+                let split_scratch = &mut *split_scratch;
+                let films = &mut *films;
+                let activated = &*activated;
+                let sample = &*sample;
+                let eps = &mut *eps;
+                Board::lead(workers, |board| {
+                    let split = Split::new(backend, board, split_scratch);
+                    let helpers = Helpers {
+                        board,
+                        kernels: backend,
+                        films,
+                    };
+                    let helpers = Some(helpers);
+                    denoiser::predict_noise(
+                        &split, &config, denoiser, step, sample, activated, scratch, helpers, eps,
+                    );
+                });
+            } else {
+                denoiser::predict_noise(
+                    backend, &config, denoiser, step, sample, activated, scratch, None, eps,
+                );
+            }
             if eps.iter().any(|value| !value.is_finite()) {
                 return Err(Error::NonFiniteResult { step });
             }

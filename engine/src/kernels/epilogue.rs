@@ -25,6 +25,8 @@ pub enum FilmWeights<'a> {
         row_scales: &'a [f32],
         input: CodeRows<'a>,
     },
+    /// Computed already ([`Film::rows`] of the weights above): the base holds FiLM's values.
+    Computed,
 }
 
 /// FiLM after the activation: `x = scale x + bias`, `[scale; bias] = base + W input`.
@@ -36,10 +38,12 @@ pub struct Film<'a> {
 }
 
 impl Film<'_> {
-    /// FiLM's values for rows `rows` into `output`.
-    fn rows(&self, kernels: &dyn Kernels, rows: Range<usize>, output: &mut [f32]) {
+    /// FiLM's values for rows `rows` into `output`: each row one sum, whatever the rows
+    /// asked together.
+    pub fn rows(&self, kernels: &dyn Kernels, rows: Range<usize>, output: &mut [f32]) {
         let base = &self.base[rows.clone()];
         match self.weights {
+            FilmWeights::Computed => output.copy_from_slice(base),
             FilmWeights::F32 { weight, input } => {
                 let cols = input.len();
                 let weight = &weight[rows.start * cols..rows.end * cols];

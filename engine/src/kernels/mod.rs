@@ -18,6 +18,7 @@
 
 #[cfg(target_arch = "aarch64")]
 pub mod aarch64;
+pub mod board;
 pub mod epilogue;
 pub mod ops;
 pub mod scalar;
@@ -28,6 +29,7 @@ pub mod workers;
 #[cfg(target_arch = "x86_64")]
 pub mod x86_64;
 
+pub use board::{Board, Collected};
 pub use epilogue::{Epilogue, Film, FilmWeights, conv_then};
 pub use split::Split;
 pub use workers::{Sequential, Workers};
