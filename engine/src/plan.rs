@@ -75,7 +75,7 @@ pub struct ArenaPlan {
     /// Trunk phase too, for a call cut over several workers: the outputs of a convolution
     /// of a small map (at most [`SMALL_MAP_PIXELS`]) cut by output channels, where bands
     /// of its rows would hold fewer pixels than the kernels compute at once
-    /// ([`crate::kernels::Kernels::int8_pixel_block`]); or a GroupNorm's moments, each
+    /// ([`crate::kernels::Kernels::int8_pixel_block`]); or a GroupNorm's moments (the stem's too), each
     /// block of [`crate::kernels::ops::MOMENT_BLOCK`] pixels' apart, and its scales and
     /// shifts.
     pub trunk_split: usize,
@@ -306,6 +306,10 @@ impl Lengths {
             trunk_naive += per_stage * activation;
             stage += 1;
         }
+        // The stem's GroupNorm moments, each block's apart, when cut over workers.
+        let stem_blocks =
+            (stem_height as u64 * stem_width as u64).div_ceil(ops::MOMENT_BLOCK as u64);
+        small_map = max(small_map, 4 * config.stage_channels(0) as u64 * stem_blocks);
         let (c1_height, c1_width) = config.pyramid_size(0);
         let maxpool = c1_height as u64 * c1_width as u64 * config.stage_channels(0) as u64;
         largest_activation = max(largest_activation, maxpool);

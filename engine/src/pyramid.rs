@@ -423,7 +423,7 @@ pub fn stem(
                 (&mut scale[..channels], &mut shift[..channels]),
             );
             let affine = (&scale[..channels], &shift[..channels]);
-            kernels.normalize_max_pool(map, map_shape, affine, Activation::Relu, pooled);
+            kernels.normalize_max_pool(map, map_shape, affine, Activation::Relu, pooled, 0);
         }
         None => {
             normalize(kernels, layer, &shape, map, Activation::Relu);

@@ -2414,6 +2414,7 @@ fn banded_moments_and_normalizing_pool_equal_group_norm_then_pool() {
                 (&scale, &shift),
                 Activation::Relu,
                 &mut found,
+                0,
             );
             let what = format!("{name} banded group norm + pool {height}x{width}x{channels}");
             assert_same_bits(&found, &expected, &what);
@@ -3357,6 +3358,56 @@ fn map_passes_cut_over_workers_give_the_whole_calls_bits_on_every_backend() {
                 let found = add(&split);
                 cut("residual add", true);
                 assert_same_bits(&found, &add(kernels), &format!("{what} add"));
+                // Added to moments already running (a band after the first, the stem's).
+                let moments = |kernels: &dyn Kernels| {
+                    let (mut sums, mut squares) = (vec![0.125f64; channels], vec![2.5; channels]);
+                    kernels.add_channel_moments(&data, channels, (&mut sums, &mut squares));
+                    let bits = |values: &[f64]| values.iter().map(|v| v.to_bits()).collect();
+                    (bits(&sums), bits(&squares)) as (Vec<u64>, Vec<u64>)
+                };
+                let found = moments(&split);
+                cut("moments", blocks > 1);
+                assert_eq!(found, moments(kernels), "{what} moments");
+            }
+            // The stem's normalize-and-pool by bands of pooled rows, from the top or from a
+            // later row, odd and even sizes.
+            for (height, width, channels, first_row) in
+                [(12, 9, 64, 0), (11, 16, 16, 0), (13, 7, 64, 2)]
+            {
+                let what = format!("{name}, {count} workers, {height}x{width}x{channels} pool");
+                let map = rng.vec(height * width * channels);
+                let (scale, shift) = (rng.vec(channels), rng.vec(channels));
+                let (pooled_height, pooled_width) = (height.div_ceil(2), width.div_ceil(2));
+                let len = (pooled_height - first_row) * pooled_width * channels;
+                let pool = |kernels: &dyn Kernels| {
+                    let mut pooled = vec![7.0f32; len];
+                    let (dims, affine) = ((height, width, channels), (&scale[..], &shift[..]));
+                    kernels.normalize_max_pool(
+                        &map,
+                        dims,
+                        affine,
+                        Activation::Relu,
+                        &mut pooled,
+                        first_row,
+                    );
+                    pooled
+                };
+                let found = pool(&split);
+                cut("normalize and pool", true);
+                let whole = pool(kernels);
+                assert_same_bits(&found, &whole, &what);
+                // And the whole pool's rows from `first_row`: the band is the pool's.
+                let mut all = vec![0.0f32; pooled_height * pooled_width * channels];
+                let dims = (height, width, channels);
+                kernels.normalize_max_pool(
+                    &map,
+                    dims,
+                    (&scale, &shift),
+                    Activation::Relu,
+                    &mut all,
+                    0,
+                );
+                assert_same_bits(&whole, &all[first_row * pooled_width * channels..], &what);
             }
             let mut inputs: Vec<Vec<f32>> = vec![rng.vec(777), vec![0.0; 300]];
             let nonnegative: Vec<f32> = rng.vec(1025).iter().map(|x| x.abs()).collect();

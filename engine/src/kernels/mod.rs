@@ -694,7 +694,8 @@ pub trait Kernels: Sync {
         ops::add_channel_moments(data, channels, moments)
     }
 
-    /// [`ops::normalize_max_pool`]: the max pool of `activation(x * scale + shift)`.
+    /// [`ops::normalize_max_pool`]: the max pool of `activation(x * scale + shift)`, its
+    /// rows from `first_row` on into `output`.
     fn normalize_max_pool(
         &self,
         input: &[f32],
@@ -702,8 +703,9 @@ pub trait Kernels: Sync {
         affine: (&[f32], &[f32]),
         activation: Activation,
         output: &mut [f32],
+        first_row: usize,
     ) {
-        ops::normalize_max_pool(input, dims, affine, activation, output)
+        ops::normalize_max_pool(input, dims, affine, activation, output, first_row)
     }
 
     /// [`ops::max_pool_3x3_stride_2`]: `[height, width, channels]` -> the pooled map.

@@ -418,7 +418,9 @@ fn channel_affine(
 
 /// [`max_pool_3x3_stride_2`] of `activation(x * scale + shift)` (per channel): normalizing
 /// then pooling, the same bits, without storing the normalized map (the panda stem's is 4.9
-/// MB, so each pass over it goes to L3).
+/// MB, so each pass over it goes to L3). `output` holds the pooled rows from `first_row`
+/// on (as many as it has room for): each pooled pixel reads its own window, so a band of
+/// them is the whole pool's.
 #[inline(always)]
 pub fn normalize_max_pool(
     input: &[f32],
@@ -426,10 +428,11 @@ pub fn normalize_max_pool(
     (scale, shift): (&[f32], &[f32]),
     activation: Activation,
     output: &mut [f32],
+    first_row: usize,
 ) {
     let channels = dims.2;
     let (scale, shift) = (&scale[..channels], &shift[..channels]);
-    pool_windows(input, dims, output, |out, pixel| {
+    pool_windows(input, dims, output, first_row, |out, pixel| {
         for (((o, &x), &a), &b) in out.iter_mut().zip(pixel).zip(scale).zip(shift) {
             *o = o.max(activate(x * a + b, activation));
         }
@@ -439,7 +442,7 @@ pub fn normalize_max_pool(
 /// 3x3 max pool, stride 2, padding 1 (padding never wins) over `[H, W, C]`.
 #[inline(always)]
 pub fn max_pool_3x3_stride_2(input: &[f32], dims: (usize, usize, usize), output: &mut [f32]) {
-    pool_windows(input, dims, output, |out, pixel| {
+    pool_windows(input, dims, output, 0, |out, pixel| {
         for (o, &x) in out.iter_mut().zip(pixel) {
             *o = o.max(x);
         }
@@ -447,20 +450,22 @@ pub fn max_pool_3x3_stride_2(input: &[f32], dims: (usize, usize, usize), output:
 }
 
 /// The 3x3 / 2 pool's walk (padding 1, never read): each output pixel of `[H, W, C]`
-/// `input`'s pooled map starts at minus infinity and `take(out, pixel)` folds in each input
-/// pixel of its window, rows then columns in order.
+/// `input`'s pooled map, `output` holding its rows from `first_row` on, starts at minus
+/// infinity and `take(out, pixel)` folds in each input pixel of its window, rows then
+/// columns in order.
 #[inline(always)]
 fn pool_windows(
     input: &[f32],
     (height, width, channels): (usize, usize, usize),
     output: &mut [f32],
+    first_row: usize,
     mut take: impl FnMut(&mut [f32], &[f32]),
 ) {
     let out_height = crate::shape::conv_output(height, 3, 2, 1);
     let out_width = crate::shape::conv_output(width, 3, 2, 1);
-    debug_assert_eq!(output.len(), out_height * out_width * channels);
+    debug_assert!(output.len() <= out_height.saturating_sub(first_row) * out_width * channels);
     for (position, out) in output.chunks_exact_mut(channels).enumerate() {
-        let out_y = position / out_width;
+        let out_y = first_row + position / out_width;
         let out_x = position % out_width;
         out.fill(f32::NEG_INFINITY);
         for in_y in (2 * out_y).saturating_sub(1)..(2 * out_y + 2).min(height) {

@@ -31,6 +31,7 @@ use super::{
     Accumulate, ByteRows, CodeRows, ConvShape, DigitRows, Epilogue, INT8_CHANNEL_BLOCK, Kernels,
     NarrowForm, SignedByteRows, ops, ops::Activation,
 };
+use crate::shape;
 
 /// One band of a convolution: its shape, the input range it reads, its output.
 type Band<'b> = dyn Fn(&ConvShape, Range<usize>, &mut [f32]) + Sync + 'b;
@@ -139,20 +140,8 @@ impl<'s> Split<'s> {
             return false;
         }
         let (scratch, block_len) = (self.scratch, ops::MOMENT_BLOCK * channels);
-        let (kernels, values) = (self.kernels, &*data);
-        self.workers.run(pieces, &|piece| {
-            for block in share(blocks, pieces, piece) {
-                // SAFETY: each block has its own part of the scratch, which `busy` keeps
-                // for this call alone.
-                let slot =
-                    unsafe { scratch.slice(4 * channels * block..4 * channels * (block + 1)) };
-                let slot: &mut [f64] = bytemuck::cast_slice_mut(slot);
-                slot.fill(0.0);
-                let (sums, squares) = slot.split_at_mut(channels);
-                let pixels = block * block_len..((block + 1) * block_len).min(values.len());
-                kernels.add_channel_moments(&values[pixels], channels, (sums, squares));
-            }
-        });
+        let kernels = self.kernels;
+        self.block_moments(data, channels, pieces);
         // SAFETY: the pieces are done; `busy` keeps the scratch for this call.
         let (moments, affine_out) =
             unsafe { scratch.slice(0..moments_len + 2 * channels) }.split_at_mut(moments_len);
@@ -176,6 +165,69 @@ impl<'s> Split<'s> {
             let part = unsafe { out.slice(pixels) };
             kernels.affine_activate(part, channels, (scale, shift), activation);
         });
+        self.busy.store(false, Ordering::Release);
+        true
+    }
+
+    /// The moments of each block of [`ops::MOMENT_BLOCK`] pixels of `data` (`[pixels,
+    /// channels]`), summed from zero over `pieces` workers, runs of blocks each, into the
+    /// scratch apart: block `b`'s sums then squares (f64) at `4 channels b`. The caller
+    /// holds `busy` and has checked that the scratch holds them, on 8-byte boundaries.
+    fn block_moments(&self, data: &[f32], channels: usize, pieces: usize) {
+        let (scratch, block_len) = (self.scratch, ops::MOMENT_BLOCK * channels);
+        let blocks = data.len().div_ceil(block_len);
+        let kernels = self.kernels;
+        self.workers.run(pieces, &|piece| {
+            for block in share(blocks, pieces, piece) {
+                // SAFETY: each block has its own part of the scratch, which `busy` keeps
+                // for this call alone.
+                let slot =
+                    unsafe { scratch.slice(4 * channels * block..4 * channels * (block + 1)) };
+                let slot: &mut [f64] = bytemuck::cast_slice_mut(slot);
+                slot.fill(0.0);
+                let (sums, squares) = slot.split_at_mut(channels);
+                let pixels = block * block_len..((block + 1) * block_len).min(data.len());
+                kernels.add_channel_moments(&data[pixels], channels, (sums, squares));
+            }
+        });
+    }
+
+    /// [`Kernels::add_channel_moments`] over the workers: each block's moments
+    /// ([`Self::block_moments`]), then added to `moments` in block order, the sums the
+    /// whole call makes. `false`, having run nothing, where the call is small or the
+    /// scratch cannot hold the blocks' moments.
+    fn moments_by_blocks(
+        &self,
+        data: &[f32],
+        channels: usize,
+        (sums, squares): (&mut [f64], &mut [f64]),
+    ) -> bool {
+        let positions = data.len().checked_div(channels).unwrap_or(0);
+        let blocks = positions.div_ceil(ops::MOMENT_BLOCK);
+        let pieces = self.pieces(blocks, ELEMENT_WORK * data.len());
+        let moments_len = 4 * channels * blocks;
+        let aligned = (self.scratch.start as usize).is_multiple_of(align_of::<f64>());
+        let shaped = aligned
+            && data.len() == positions * channels
+            && sums.len() >= channels
+            && squares.len() >= channels;
+        if pieces < 2 || !shaped || self.scratch.len < moments_len {
+            return false;
+        }
+        if self.busy.swap(true, Ordering::Acquire) {
+            return false;
+        }
+        self.block_moments(data, channels, pieces);
+        // SAFETY: the pieces are done; `busy` keeps the scratch for this call.
+        let moments: &[f64] = bytemuck::cast_slice(unsafe { self.scratch.slice(0..moments_len) });
+        for block in moments.chunks_exact(2 * channels) {
+            let (block_sums, block_squares) = block.split_at(channels);
+            sums.iter_mut()
+                .zip(block_sums)
+                .for_each(|(sum, &value)| *sum += value);
+            let squared = squares.iter_mut().zip(block_squares);
+            squared.for_each(|(sum, &value)| *sum += value);
+        }
         self.busy.store(false, Ordering::Release);
         true
     }
@@ -1134,9 +1186,12 @@ impl Kernels for Split<'_> {
         &self,
         data: &[f32],
         channels: usize,
-        moments: (&mut [f64], &mut [f64]),
+        (sums, squares): (&mut [f64], &mut [f64]),
     ) {
-        self.kernels.add_channel_moments(data, channels, moments)
+        if !self.moments_by_blocks(data, channels, (&mut *sums, &mut *squares)) {
+            self.kernels
+                .add_channel_moments(data, channels, (sums, squares))
+        }
     }
 
     fn normalize_max_pool(
@@ -1146,9 +1201,26 @@ impl Kernels for Split<'_> {
         affine: (&[f32], &[f32]),
         activation: Activation,
         output: &mut [f32],
+        first_row: usize,
     ) {
-        self.kernels
-            .normalize_max_pool(input, dims, affine, activation, output)
+        let (kernels, channels) = (self.kernels, dims.2);
+        let row_len = shape::conv_output(dims.1, 3, 2, 1) * channels;
+        let rows = output.len().checked_div(row_len).unwrap_or(0);
+        // Bands of pooled rows: each reads the map's rows around twice its own, which the
+        // stem's convolution pieces mostly wrote on the same core.
+        let pieces = self.pieces(rows, ELEMENT_WORK * input.len());
+        if pieces < 2 || output.len() != rows * row_len {
+            return kernels.normalize_max_pool(input, dims, affine, activation, output, first_row);
+        }
+        let out = Shared::new(output);
+        self.workers.run(pieces, &|piece| {
+            let band = share(rows, pieces, piece);
+            // SAFETY: the pieces' bands are disjoint parts of `output`, which the caller
+            // does not touch until `run` has returned.
+            let part = unsafe { out.slice(band.start * row_len..band.end * row_len) };
+            let first = first_row + band.start;
+            kernels.normalize_max_pool(input, dims, affine, activation, part, first);
+        });
     }
 
     fn max_pool_3x3_stride_2(

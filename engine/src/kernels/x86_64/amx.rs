@@ -568,9 +568,10 @@ impl Kernels for Amx {
         affine: (&[f32], &[f32]),
         activation: Activation,
         output: &mut [f32],
+        first_row: usize,
     ) {
         self.avx512
-            .normalize_max_pool(input, dims, affine, activation, output)
+            .normalize_max_pool(input, dims, affine, activation, output, first_row)
     }
 
     fn max_pool_3x3_stride_2(

@@ -133,8 +133,9 @@ macro_rules! backend {
                 affine: (&[f32], &[f32]),
                 activation: Activation,
                 output: &mut [f32],
+                first_row: usize,
             ) {
-                ops::normalize_max_pool(input, dims, affine, activation, output)
+                ops::normalize_max_pool(input, dims, affine, activation, output, first_row)
             }
 
             /// [`ops::max_pool_3x3_stride_2`] on this backend's vectors.

@@ -232,11 +232,12 @@ macro_rules! shared_kernels {
             affine: (&[f32], &[f32]),
             activation: Activation,
             output: &mut [f32],
+            first_row: usize,
         ) {
             // SAFETY: `self` exists only on a CPU with the backend's features.
             unsafe {
                 crate::kernels::x86_64::elementwise::$backend::normalize_max_pool(
-                    input, dims, affine, activation, output,
+                    input, dims, affine, activation, output, first_row,
                 )
             }
         }
