@@ -487,19 +487,50 @@ impl<'w, 'a> Policy<'w, 'a> {
                 current_state,
                 anchors_uv,
             );
-            for (frame_index, &slot) in slots[..frames].iter().enumerate() {
-                let mut store = FrameStore::new(
-                    &mut buffers.features[slot * frame_len..][..frame_len],
-                    &plan.frame,
-                );
-                context::pool_context(
-                    kernels,
-                    &config,
-                    &weights.pyramid.projections,
-                    &mut store,
-                    anchors_uv,
-                    &mut buffers.global_cond[frame_index * cond_stride..][..context_dim],
-                );
+            // Each frame's cells and pooling on a worker of its own, where the frames are
+            // distinct (one observation fills every slot of the history until the next).
+            let distinct = (1..frames).all(|frame| !slots[..frame].contains(&slots[frame]));
+            if workers.count() > 1 && distinct {
+                let mut per_slot: heapless::Vec<Option<&mut [f32]>, MAX_OBS_STEPS> = buffers
+                    .features
+                    .chunks_exact_mut(frame_len.max(1))
+                    .map(Some)
+                    .collect();
+                let contexts = buffers.global_cond.chunks_exact_mut(cond_stride.max(1));
+                let mut pooled = heapless::Vec::<_, MAX_OBS_STEPS>::new();
+                for (&slot, context) in slots[..frames].iter().zip(contexts) {
+                    let store = per_slot.get_mut(slot).and_then(Option::take);
+                    let store = store.map(|region| FrameStore::new(region, &plan.frame));
+                    let _ = pooled.push((store, &mut context[..context_dim]));
+                }
+                let projections = &weights.pyramid.projections;
+                kernels::run_each(workers, &mut pooled, &|(store, context)| {
+                    if let Some(store) = store {
+                        context::pool_context(
+                            backend,
+                            &config,
+                            projections,
+                            store,
+                            anchors_uv,
+                            context,
+                        );
+                    }
+                });
+            } else {
+                for (frame_index, &slot) in slots[..frames].iter().enumerate() {
+                    let mut store = FrameStore::new(
+                        &mut buffers.features[slot * frame_len..][..frame_len],
+                        &plan.frame,
+                    );
+                    context::pool_context(
+                        kernels,
+                        &config,
+                        &weights.pyramid.projections,
+                        &mut store,
+                        anchors_uv,
+                        &mut buffers.global_cond[frame_index * cond_stride..][..context_dim],
+                    );
+                }
             }
             let global_cond = &buffers.global_cond[..config.global_cond_dim()];
             let activated = &mut buffers.activated_cond[..global_cond.len()];

@@ -32,7 +32,7 @@ pub mod x86_64;
 pub use board::{Board, Collected};
 pub use epilogue::{Epilogue, Film, FilmWeights, conv_then};
 pub use split::Split;
-pub use workers::{Sequential, Workers};
+pub use workers::{Sequential, Workers, run_each};
 
 use ops::Activation;
 

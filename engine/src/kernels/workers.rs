@@ -31,3 +31,31 @@ impl Workers for Sequential {
         (0..pieces).for_each(work)
     }
 }
+
+/// Runs `work` on each of `items`, one piece an item, over `workers`: each piece changes its
+/// own item alone.
+pub fn run_each<T: Send>(workers: &dyn Workers, items: &mut [T], work: &(dyn Fn(&mut T) + Sync)) {
+    let (start, len) = (Items(items.as_mut_ptr()), items.len());
+    let start = &start;
+    workers.run(len, &|piece| {
+        if piece < len {
+            // SAFETY: `Workers::run` calls each piece once, so each item is lent to one
+            // piece, while `items` stays borrowed until every piece has returned.
+            work(unsafe { &mut *start.item(piece) })
+        }
+    });
+}
+
+/// The items' start, lent to the pieces.
+struct Items<T>(*mut T);
+
+impl<T> Items<T> {
+    /// Item `index`'s place (inside the items: the caller checks).
+    fn item(&self, index: usize) -> *mut T {
+        self.0.wrapping_add(index)
+    }
+}
+
+// SAFETY: each piece takes its own item (`run_each`); `T: Send` lets it go to that piece's
+// thread.
+unsafe impl<T: Send> Sync for Items<T> {}
