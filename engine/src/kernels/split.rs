@@ -11,17 +11,19 @@
 //!   lie together, [`INT8_CHANNEL_BLOCK`]; f32 ones are read a row segment at a time,
 //!   [`Kernels::conv_channels`]). A block's outputs are computed into its part of a scratch
 //!   buffer, then copied (or added) into place;
-//! - the FiLM products: runs of rows;
+//! - the FiLM products: runs of rows (with several workers a denoising step computes them in
+//!   the background instead, [`super::Board`]);
 //! - a large map's passes: GroupNorm by runs of whole [`ops::MOMENT_BLOCK`] blocks of
 //!   pixels (each block's moments apart, added in block order by the caller, then the scale
-//!   and shift applied), a quantization by runs of values (their largest magnitudes, then
-//!   the codes), the residual add by runs. These runs follow the convolution's bands, so
-//!   each core keeps the rows it wrote.
+//!   and shift applied; the stem's moments the same way), a quantization by runs of values
+//!   (their largest magnitudes, then the codes), the residual add by runs, the stem's
+//!   normalize-and-pool by bands of pooled rows. These runs follow the convolution's bands,
+//!   so each core keeps the rows it wrote.
 //!
 //! A U-Net convolution with its [`Epilogue`] ([`Kernels::conv_then`]) is cut into blocks of
 //! whole groups, and each piece runs the epilogue (GroupNorm, Mish, FiLM) on its own block.
-//! Everything else (small maps' passes, the stem's normalize-and-pool, the int8
-//! projections evaluated a few cells at a time) runs whole on the caller.
+//! Everything else (small maps' passes, the int8 projections evaluated a few cells at a
+//! time) runs whole on the caller.
 
 use core::ops::Range;
 use core::sync::atomic::{AtomicBool, AtomicU32, AtomicUsize, Ordering};
