@@ -120,19 +120,14 @@ impl<'s> Split<'s> {
         affine: (&[f32], &[f32]),
         activation: Activation,
     ) -> bool {
-        let positions = data.len().checked_div(channels).unwrap_or(0);
-        let blocks = positions.div_ceil(ops::MOMENT_BLOCK);
-        let pieces = self.pieces(blocks, ELEMENT_WORK * data.len());
+        let Some((positions, blocks, pieces)) = self.moment_blocks(data, channels) else {
+            return false;
+        };
         // Each block's sums and squares (f64), then the channels' scales and shifts.
         let moments_len = 4 * channels * blocks;
-        // The scratch holds f64 moments: a caller's scratch on 4-byte boundaries runs whole.
-        let aligned = (self.scratch.start as usize).is_multiple_of(align_of::<f64>());
-        let shaped = aligned
-            && channels > 0
-            && groups > 0
+        let shaped = groups > 0
             && channels.is_multiple_of(groups)
             && channels / groups <= ops::GROUP_NORM_CHUNK
-            && data.len() == positions * channels
             && affine.0.len() == channels
             && affine.1.len() == channels;
         if pieces < 2 || !shaped || self.scratch.len < moments_len + 2 * channels {
@@ -171,6 +166,24 @@ impl<'s> Split<'s> {
         true
     }
 
+    /// The pixels of `data` (`[pixels, channels]`), its blocks of [`ops::MOMENT_BLOCK`]
+    /// pixels and the pieces they go to; `None` where `data` is not whole pixels or the
+    /// scratch is not on 8-byte boundaries (it holds f64 moments: a caller's scratch on
+    /// 4-byte boundaries runs whole).
+    fn moment_blocks(&self, data: &[f32], channels: usize) -> Option<(usize, usize, usize)> {
+        let positions = data.len().checked_div(channels)?;
+        let aligned = (self.scratch.start as usize).is_multiple_of(align_of::<f64>());
+        if !aligned || data.len() != positions * channels {
+            return None;
+        }
+        let blocks = positions.div_ceil(ops::MOMENT_BLOCK);
+        Some((
+            positions,
+            blocks,
+            self.pieces(blocks, ELEMENT_WORK * data.len()),
+        ))
+    }
+
     /// The moments of each block of [`ops::MOMENT_BLOCK`] pixels of `data` (`[pixels,
     /// channels]`), summed from zero over `pieces` workers, runs of blocks each, into the
     /// scratch apart: block `b`'s sums then squares (f64) at `4 channels b`. The caller
@@ -204,15 +217,11 @@ impl<'s> Split<'s> {
         channels: usize,
         (sums, squares): (&mut [f64], &mut [f64]),
     ) -> bool {
-        let positions = data.len().checked_div(channels).unwrap_or(0);
-        let blocks = positions.div_ceil(ops::MOMENT_BLOCK);
-        let pieces = self.pieces(blocks, ELEMENT_WORK * data.len());
+        let Some((_, blocks, pieces)) = self.moment_blocks(data, channels) else {
+            return false;
+        };
         let moments_len = 4 * channels * blocks;
-        let aligned = (self.scratch.start as usize).is_multiple_of(align_of::<f64>());
-        let shaped = aligned
-            && data.len() == positions * channels
-            && sums.len() >= channels
-            && squares.len() >= channels;
+        let shaped = sums.len() >= channels && squares.len() >= channels;
         if pieces < 2 || !shaped || self.scratch.len < moments_len {
             return false;
         }
