@@ -1,14 +1,14 @@
-//! One piece of work a worker that runs the calls of a chain of layers, the others helping:
-//! they take the pieces of the chain's cut calls ([`Board`] is itself [`Workers`]) and, in
-//! between, chunks of work the chain posted to run in the background and collects later
-//! ([`Board::with_background`]: a denoising step's FiLM products, which depend on the
-//! condition alone). A fork-join call a layer leaves a worker idle while the calling thread
-//! runs what is not cut (a layer's quantization, the small calls) and while the slower half
-//! of each call finishes; here that time goes to the background work.
+//! A chain of layers as one call of the workers: the first piece to start runs the layers
+//! (the chain), the others help. They take the pieces of the chain's cut calls ([`Board`]
+//! is itself [`Workers`]) and, in between, chunks of work the chain posted to run in the
+//! background and collects later ([`Board::with_background`]: a denoising step's FiLM
+//! products, which depend on the step's condition alone). A fork-join call for each layer
+//! leaves the other workers idle while the calling thread runs what is not cut (a layer's
+//! quantization, the small calls) and while the slower half of each call finishes; here
+//! that time goes to the background work.
 //!
-//! The first piece to start runs the chain, every other helps until it is done. A thread
-//! waits only for work another has claimed, never for a piece to start, so any [`Workers`]
-//! (pieces one after the other on one core included) runs it to the end.
+//! A thread waits only for work another has claimed, never for a piece to start, so any
+//! [`Workers`] (pieces one after the other on one core included) runs it to the end.
 
 use core::cell::UnsafeCell;
 use core::ops::Range;
