@@ -3,6 +3,7 @@
 // Declared under the same gate in `mod.rs`; said here too, so the file stands on its own.
 #![cfg(feature = "std")]
 
+#[cfg(feature = "std")]
 use std::arch::is_aarch64_feature_detected;
 
 /// The dot-product extension (`sdot`, FEAT_DotProd) is present, as the OS reports it.
