@@ -313,7 +313,6 @@ pub fn predict_noise(
     let total: usize = blocks().map(|block| 2 * block.out_channels).sum();
     let chunk_rows = CHUNK_ROWS.max(total.div_ceil(board::MAX_CHUNKS - BLOCKS));
     let mut chunks = heapless::Vec::<Range<usize>, { board::MAX_CHUNKS }>::new();
-    let mut owners = [0usize; board::MAX_CHUNKS];
     let mut ranges: [Range<usize>; BLOCKS] = core::array::from_fn(|_| 0..0);
     let mut last = [0usize; BLOCKS];
     let mut start = 0;
@@ -321,7 +320,6 @@ pub fn predict_noise(
         let rows = 2 * block.out_channels;
         ranges[index] = start..start + rows;
         for row in (0..rows).step_by(chunk_rows.max(1)) {
-            owners[chunks.len().min(board::MAX_CHUNKS - 1)] = index;
             let end = (row + chunk_rows).min(rows);
             if chunks.push(start + row..start + end).is_err() {
                 break;
@@ -359,11 +357,14 @@ pub fn predict_noise(
     };
     let all: heapless::Vec<&ResidualBlock<'_>, BLOCKS> = blocks().take(BLOCKS).collect();
     let film_rows = |chunk: usize, values: &mut [f32]| {
-        let index = owners[chunk];
+        let range = &chunks[chunk];
+        // The block whose rows hold the chunk (chunks never span two).
+        let Some(index) = ranges.iter().position(|rows| rows.contains(&range.start)) else {
+            return;
+        };
         let Some(block) = all.get(index) else {
             return;
         };
-        let range = &chunks[chunk];
         let rows = range.start - ranges[index].start..range.end - ranges[index].start;
         block_film(block, step, activated_cond, cond_codes).rows(helper_kernels, rows, values);
     };
